@@ -1,0 +1,211 @@
+"""Rendered data sets, patch sampling and torch ``Dataset`` s.
+
+A data set folder is what ``python -m kpcn.render dataset`` writes: one folder
+per scene with ``input_<spp>spp.exr`` files and a ``reference.exr``, and a
+``manifest.json`` listing them. Each (input, reference) pair is a *frame*.
+
+Patches follow the paper: 65×65 by default, their number scaled to the frame
+area (400 per 1280×720 frame), drawn uniformly or by importance — dart throwing
+over a pdf built from the colour variance and the normal variance, each mapped
+to [0, 1] (Bako et al. 2017 §5; CN113947547A claim 4).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from .features import INPUT_LAYERS, TARGET_LAYERS, frame_to_tensors, make_features, make_targets
+from .io import Frame, read_exr
+
+PAPER_PATCHES_PER_PIXEL = 400 / (1280 * 720)
+
+
+@dataclass
+class FramePair:
+    scene: str
+    spp: int
+    input_path: Path
+    reference_path: Path
+
+
+def read_manifest(root: str | Path, spp: Sequence[int] | None = None) -> list[FramePair]:
+    """The (input, reference) pairs of a rendered data set, optionally only some spp."""
+    root = Path(root)
+    mpath = root / "manifest.json"
+    if not mpath.exists():
+        raise FileNotFoundError(f"{root}: no manifest.json — render one with `python -m kpcn.render dataset --out {root}`")
+    manifest = json.loads(mpath.read_text())
+    pairs = []
+    for sc in manifest["scenes"]:
+        for s, rel in sc["inputs"].items():
+            if spp is None or int(s) in spp:
+                pairs.append(FramePair(sc["name"], int(s), root / rel, root / sc["reference"]))
+    return pairs
+
+
+def read_pair(pair: FramePair) -> tuple[Frame, Frame]:
+    """The noisy and the reference frame of a pair, checked for the layers training needs."""
+    noisy = read_exr(pair.input_path, require=INPUT_LAYERS + ("color",))
+    ref = read_exr(pair.reference_path, require=TARGET_LAYERS)
+    return noisy, ref
+
+
+def load_pair(pair: FramePair) -> dict[str, torch.Tensor]:
+    """Features and targets of one whole frame, ``(1, C, H, W)`` tensors."""
+    return pair_tensors(*read_pair(pair))
+
+
+def pair_tensors(noisy: Frame, ref: Frame) -> dict[str, torch.Tensor]:
+    """Features of ``noisy`` and targets from ``ref``, ``(1, C, H, W)`` tensors."""
+    feats = make_features(frame_to_tensors(noisy))
+    targets = make_targets(frame_to_tensors(ref, TARGET_LAYERS), feats.albedo)
+    out = {**feats.as_dict(), **targets}
+    out["noisy_color"] = frame_to_tensors(noisy, ("color",))["color"]
+    return out
+
+
+# ----------------------------------------------------------------------------- patch sampling
+
+
+def patch_count(height: int, width: int, per_pixel: float = PAPER_PATCHES_PER_PIXEL) -> int:
+    """Number of patches for a frame: the paper's 400 per 1280×720, at least one."""
+    return max(1, int(round(height * width * per_pixel)))
+
+
+def _to01(x: np.ndarray) -> np.ndarray:
+    """Map a non-negative map to [0, 1] robustly (divide by its 99th percentile, clip)."""
+    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+    top = np.percentile(x, 99.0)
+    if top <= 0:
+        top = x.max()
+    return np.clip(x / top, 0.0, 1.0) if top > 0 else np.zeros_like(x)
+
+
+def importance_map(color_variance: np.ndarray, normal_variance: np.ndarray) -> np.ndarray:
+    """Per-pixel importance ``(H, W)`` in [0, 1] from colour and normal variance ``(H, W[, C])``."""
+    cv = color_variance.mean(-1) if color_variance.ndim == 3 else color_variance
+    nv = normal_variance.mean(-1) if normal_variance.ndim == 3 else normal_variance
+    return 0.5 * (_to01(cv) + _to01(nv))
+
+
+def _window_means(m: np.ndarray, size: int) -> np.ndarray:
+    """Mean of ``m`` over every ``size``×``size`` window (top-left anchored), via an integral image."""
+    ii = np.pad(m, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    s = ii[size:, size:] - ii[:-size, size:] - ii[size:, :-size] + ii[:-size, :-size]
+    return s / (size * size)
+
+
+def sample_patches(
+    height: int,
+    width: int,
+    n: int,
+    size: int = 65,
+    importance: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+    candidates: int = 8,
+    uniform_mix: float = 0.2,
+) -> np.ndarray:
+    """Top-left corners ``(n, 2)`` of ``size``×``size`` patches inside an ``height``×``width`` frame.
+
+    Without ``importance`` the corners are uniform. With it, dart throwing:
+    ``candidates * n`` uniform darts, each scored by the mean importance of its
+    patch, then ``n`` kept without replacement with probability proportional to
+    ``score + uniform_mix * mean(score)`` (the floor keeps easy regions in the
+    training set so the model learns not to blur what is already clean).
+    Frames smaller than ``size`` give patches clipped to the frame (corner 0).
+    """
+    rng = rng or np.random.default_rng()
+    hy, hx = max(height - size, 0) + 1, max(width - size, 0) + 1
+    if importance is None:
+        return np.stack([rng.integers(0, hy, n), rng.integers(0, hx, n)], axis=1)
+    k = max(n, candidates * n)
+    darts = np.stack([rng.integers(0, hy, k), rng.integers(0, hx, k)], axis=1)
+    sz = min(size, height, width)
+    win = _window_means(importance.astype(np.float64), sz)
+    score = win[np.minimum(darts[:, 0], win.shape[0] - 1), np.minimum(darts[:, 1], win.shape[1] - 1)]
+    p = score + uniform_mix * max(score.mean(), 1e-12)
+    p = p / p.sum()
+    keep = rng.choice(k, size=n, replace=False, p=p)
+    return darts[keep]
+
+
+# ----------------------------------------------------------------------------- datasets
+
+
+class PatchDataset(Dataset):
+    """Training patches over a rendered data set.
+
+    Frames are loaded once and kept as feature tensors; :meth:`resample`
+    draws a new set of patch positions (call it at each epoch). Items are dicts
+    of ``(C, size, size)`` tensors: ``x_diffuse``, ``x_specular`` (27 each),
+    ``albedo``, ``y_diffuse``, ``y_specular``, ``y_color``, ``noisy_color``.
+    """
+
+    def __init__(
+        self,
+        pairs: Sequence[FramePair],
+        patch_size: int = 65,
+        patches_per_frame: int | None = None,
+        sampling: str = "importance",
+        seed: int = 0,
+    ):
+        if sampling not in ("importance", "uniform"):
+            raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
+        if not pairs:
+            raise ValueError("PatchDataset: no frames")
+        self.pairs = list(pairs)
+        self.patch_size = patch_size
+        self.sampling = sampling
+        self.frames, self.importance = [], []
+        for p in self.pairs:
+            noisy, ref = read_pair(p)
+            self.frames.append({k: v[0] for k, v in pair_tensors(noisy, ref).items()})
+            imp = None
+            if sampling == "importance":
+                noisy.require(("colorVariance", "normalVariance"))
+                imp = importance_map(noisy["colorVariance"], noisy["normalVariance"])
+            self.importance.append(imp)
+        self.patches_per_frame = patches_per_frame
+        self.seed = seed
+        self.index: np.ndarray = np.zeros((0, 3), dtype=np.int64)
+        self.resample(0)
+
+    def resample(self, epoch: int) -> None:
+        rng = np.random.default_rng([self.seed, epoch])
+        rows = []
+        for i, fr in enumerate(self.frames):
+            h, w = fr["albedo"].shape[-2:]
+            n = self.patches_per_frame or patch_count(h, w)
+            corners = sample_patches(h, w, n, self.patch_size, self.importance[i], rng)
+            rows.append(np.concatenate([np.full((n, 1), i), corners], axis=1))
+        self.index = np.concatenate(rows).astype(np.int64)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        f, y, x = (int(v) for v in self.index[idx])
+        s = self.patch_size
+        return {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
+
+
+class FrameDataset(Dataset):
+    """Whole frames (features, targets, noisy colour) for validation; items are ``(C, H, W)``."""
+
+    def __init__(self, pairs: Sequence[FramePair]):
+        self.pairs = list(pairs)
+        self._cache: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        if idx not in self._cache:
+            self._cache[idx] = {k: v[0] for k, v in load_pair(self.pairs[idx]).items()}
+        return self._cache[idx]

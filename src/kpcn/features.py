@@ -1,0 +1,177 @@
+"""KPCN input features and training targets (DESIGN §2.2, Bako et al. 2017 eq. 6).
+
+Each branch gets a ``(B, 27, H, W)`` tensor with this channel layout:
+
+=========  ===========================================================
+channels   content
+=========  ===========================================================
+0–2        branch colour: ``diffuse / (albedo + eps)`` or ``log1p(specular)``
+3          its variance (delta method for specular), mean over RGB
+4–13       x-gradients of branch colour (3), normal (3), albedo (3), depth (1)
+14–23      y-gradients of the same ten channels
+24–26      variances of normal, albedo, depth (one channel each)
+=========  ===========================================================
+
+Gradients are forward differences, zero on the last column / row. Depth is
+divided by the image's largest depth (``depth_scale``; pass the whole frame's
+value when working on tiles) and its variance by the square of that.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .constants import EPS, N_FEATURES
+from .io import Frame
+
+#: layers the features read from a noisy render
+INPUT_LAYERS = (
+    "diffuse",
+    "specular",
+    "albedo",
+    "normal",
+    "depth",
+    "diffuseVariance",
+    "specularVariance",
+    "albedoVariance",
+    "normalVariance",
+    "depthVariance",
+)
+#: layers a reference render must have for training targets
+TARGET_LAYERS = ("diffuse", "specular")
+
+# channel indices, for code that reads the features
+COLOR = slice(0, 3)
+COLOR_VAR = slice(3, 4)
+GRAD_X = slice(4, 14)
+GRAD_Y = slice(14, 24)
+FEATURE_VAR = slice(24, 27)
+
+
+def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS) -> dict[str, torch.Tensor]:
+    """Layers of a frame as float32 ``(1, C, H, W)`` tensors (checks they are present)."""
+    frame.require(layers)
+    return {n: torch.from_numpy(np.ascontiguousarray(frame[n].transpose(2, 0, 1)))[None].float() for n in layers}
+
+
+def _mean_c(x: torch.Tensor) -> torch.Tensor:
+    return x.mean(dim=1, keepdim=True)
+
+
+def gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences of ``(B, C, H, W)`` in x and y, zero on the last column / row."""
+    gx = torch.zeros_like(x)
+    gy = torch.zeros_like(x)
+    gx[..., :, :-1] = x[..., :, 1:] - x[..., :, :-1]
+    gy[..., :-1, :] = x[..., 1:, :] - x[..., :-1, :]
+    return gx, gy
+
+
+def depth_scale_of(depth: torch.Tensor) -> torch.Tensor:
+    """Per-image depth normaliser ``(B, 1, 1, 1)``: the largest depth, or 1 where nothing was hit."""
+    m = depth.flatten(1).amax(dim=1).view(-1, 1, 1, 1)
+    return torch.where(m > 0, m, torch.ones_like(m))
+
+
+def _variance(v: torch.Tensor) -> torch.Tensor:
+    """One-channel variance: non-finite and negative values zeroed, mean over RGB."""
+    return _mean_c(_variance_rgb(v))
+
+
+def diffuse_color(diffuse: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
+    """Irradiance-like diffuse branch colour ``diffuse / (albedo + eps)`` (negatives clamped)."""
+    return diffuse.clamp_min(0.0) / (albedo.clamp_min(0.0) + EPS)
+
+
+def specular_color(specular: torch.Tensor) -> torch.Tensor:
+    """Log-space specular branch colour ``log1p(max(specular, 0))``."""
+    return torch.log1p(specular.clamp_min(0.0))
+
+
+def _branch(color, color_var, normal, albedo, depth, var_n, var_a, var_d) -> torch.Tensor:
+    aux = torch.cat([color, normal, albedo, depth], dim=1)
+    gx, gy = gradients(aux)
+    return torch.cat([color, color_var, gx, gy, var_n, var_a, var_d], dim=1)
+
+
+@dataclass
+class Features:
+    """Network inputs for one batch; every tensor is ``(B, C, H, W)``."""
+
+    x_diffuse: torch.Tensor  # (B, 27, H, W)
+    x_specular: torch.Tensor  # (B, 27, H, W)
+    albedo: torch.Tensor  # (B, 3, H, W), clamped at 0: reconstruction multiplies by albedo + eps
+
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        return {"x_diffuse": self.x_diffuse, "x_specular": self.x_specular, "albedo": self.albedo}
+
+
+def make_features(buffers: dict[str, torch.Tensor], depth_scale: torch.Tensor | float | None = None) -> Features:
+    """Compute the 27-channel features of both branches.
+
+    Args:
+        buffers: ``(B, C, H, W)`` tensors named as :data:`INPUT_LAYERS`.
+            Non-finite values are replaced by 0 (readers already count them).
+        depth_scale: divide depth by this; default: the largest depth per image.
+
+    Returns:
+        :class:`Features`.
+    """
+    missing = [n for n in INPUT_LAYERS if n not in buffers]
+    if missing:
+        raise KeyError(f"make_features: missing buffers {missing}; got {sorted(buffers)}")
+    b = {k: torch.nan_to_num(v.float(), nan=0.0, posinf=0.0, neginf=0.0) for k, v in buffers.items()}
+    albedo = b["albedo"].clamp_min(0.0)
+    normal = b["normal"]
+    depth = b["depth"][:, :1].clamp_min(0.0)
+    if depth_scale is None:
+        depth_scale = depth_scale_of(depth)
+    depth = depth / depth_scale
+    var_n = _variance(b["normalVariance"])
+    var_a = _variance(b["albedoVariance"])
+    var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
+
+    a_eps = albedo + EPS
+    diff = diffuse_color(b["diffuse"], albedo)
+    diff_var = _mean_c(_variance_rgb(b["diffuseVariance"]) / a_eps**2)
+    spec_raw = b["specular"].clamp_min(0.0)
+    spec = torch.log1p(spec_raw)
+    spec_var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + spec_raw) ** 2)
+
+    x_d = _branch(diff, diff_var, normal, albedo, depth, var_n, var_a, var_d)
+    x_s = _branch(spec, spec_var, normal, albedo, depth, var_n, var_a, var_d)
+    return Features(x_d, x_s, albedo)
+
+
+def _variance_rgb(v: torch.Tensor) -> torch.Tensor:
+    v = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    return v.expand(-1, 3, -1, -1) if v.shape[1] == 1 else v
+
+
+def make_targets(reference: dict[str, torch.Tensor], albedo: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Training targets from a reference render, in each branch's space.
+
+    Args:
+        reference: ``(B, 3, H, W)`` ``diffuse`` and ``specular`` of the reference.
+        albedo: the *noisy input's* albedo ``(B, 3, H, W)``, since reconstruction
+            multiplies by it.
+
+    Returns:
+        ``y_diffuse`` (irradiance), ``y_specular`` (log1p) and ``y_color``
+        (``diffuse + specular`` of the reference), each ``(B, 3, H, W)``.
+    """
+    d = torch.nan_to_num(reference["diffuse"].float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    s = torch.nan_to_num(reference["specular"].float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    return {"y_diffuse": d / (albedo + EPS), "y_specular": torch.log1p(s), "y_color": d + s}
+
+
+def reconstruct(diffuse: torch.Tensor, specular: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
+    """Final radiance ``(albedo + eps) * diffuse + expm1(specular)`` from branch-space outputs."""
+    return (albedo + EPS) * diffuse + torch.expm1(specular)
+
+
+def frame_features(frame: Frame) -> Features:
+    """Features of a whole noisy frame (batch of one)."""
+    return make_features(frame_to_tensors(frame))

@@ -1,0 +1,177 @@
+"""A one-pass Mitsuba 3 path tracer that writes every buffer KPCN needs.
+
+``kpcn_split`` traces a unidirectional path tracer with next-event estimation
+and MIS (like Mitsuba's ``path``) and, in the same pass, emits as AOVs:
+
+* the radiance split into ``diffuse`` (the first surface interaction was a
+  diffuse lobe) and ``specular`` (everything else: glossy, delta, emitters seen
+  directly), with ``diffuse + specular == colour`` sample by sample;
+* first-hit ``albedo``, shading ``normal`` (world space) and ``depth``
+  (distance, 0 where nothing was hit);
+* the per-sample square of each of those, so that the film's per-pixel mean
+  gives the second moment and the variance of the pixel mean is
+  ``(m2 - m1^2) / (spp - 1)``.
+
+The split happens at the first hit only: the BSDF is evaluated once with all
+lobes and once with only the diffuse lobes (``BSDFContext.type_mask``), both
+for the emitter-sampled term and for the continuation weight. A sample drawn
+from a delta lobe contributes nothing to diffuse. After the first bounce the
+diffuse throughput is carried along with the total one.
+
+Use it through :mod:`kpcn.render`, which selects the ``llvm_ad_rgb`` variant and
+registers the plugin.
+"""
+from __future__ import annotations
+
+#: first-moment AOVs (the colour itself is the film's R, G, B)
+MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))
+#: second moments of these layers are written as ``<layer>_m2``
+MOMENT2 = (("color", 3), ("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))
+
+_REGISTERED = False
+
+
+def aov_layout() -> list[tuple[str, int]]:
+    """The AOV layers in film order: ``[(name, channels), ...]`` after R, G, B."""
+    return list(MOMENT1) + [(f"{n}_m2", c) for n, c in MOMENT2]
+
+
+def _aov_channel_names() -> list[str]:
+    names = []
+    for layer, c in aov_layout():
+        names += [f"{layer}.{s}" for s in ("RGB" if c == 3 else "Y")]
+    return names
+
+
+def register() -> str:
+    """Register the ``kpcn_split`` integrator with Mitsuba (variant must be set)."""
+    global _REGISTERED
+    if _REGISTERED:
+        return "kpcn_split"
+    import drjit as dr
+    import mitsuba as mi
+
+    def mis_weight(a, b):
+        w = a / (a + b)
+        return dr.select(dr.isfinite(w), w, 0.0)
+
+    class SplitPathIntegrator(mi.SamplingIntegrator):
+        def __init__(self, props):
+            super().__init__(props)
+            self.max_depth = int(props.get("max_depth", 8))
+            self.rr_depth = int(props.get("rr_depth", 5))
+            if self.max_depth < 1:
+                raise ValueError("kpcn_split: max_depth must be >= 1")
+
+        def aov_names(self):
+            return _aov_channel_names()
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            ctx = mi.BSDFContext()
+            ctx_diffuse = mi.BSDFContext()
+            ctx_diffuse.type_mask = mi.BSDFFlags.Diffuse
+
+            ray = mi.Ray3f(ray)
+            active = mi.Bool(active)
+            L = mi.Color3f(0.0)
+            L_d = mi.Color3f(0.0)
+            beta = mi.Color3f(1.0)
+            beta_d = mi.Color3f(0.0)
+
+            si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active)
+            hit0 = active & si.is_valid()
+            bsdf0 = si.bsdf(ray)
+            albedo = dr.select(hit0, bsdf0.eval_diffuse_reflectance(si, hit0), mi.Color3f(0.0))
+            normal = dr.select(hit0, mi.Vector3f(si.sh_frame.n), mi.Vector3f(0.0))
+            depth = dr.select(hit0, si.t, 0.0)
+
+            prev_si = dr.zeros(mi.SurfaceInteraction3f)
+            prev_bsdf_pdf = mi.Float(1.0)
+            prev_bsdf_delta = mi.Bool(True)
+
+            for bounce in range(self.max_depth + 1):
+                # -- emission reached by the current ray (MIS against NEE) ------------
+                ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+                em_pdf = mi.Float(0.0)
+                if bounce > 0:
+                    em_pdf = dr.select(
+                        ~prev_bsdf_delta,
+                        scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta),
+                        0.0,
+                    )
+                mis = mis_weight(prev_bsdf_pdf, em_pdf)
+                Le = dr.select(active, mis * ds.emitter.eval(si, active), mi.Color3f(0.0))
+                L += beta * Le
+                if bounce > 0:  # emitters seen directly are specular
+                    L_d += beta_d * Le
+                if bounce == self.max_depth:
+                    break
+
+                active_next = active & si.is_valid()
+                bsdf = si.bsdf(ray)
+
+                # -- next-event estimation ---------------------------------------------
+                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                ds_em, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+                active_em &= ds_em.pdf != 0.0
+                wo_em = si.to_local(ds_em.d)
+                f_em, pdf_em = bsdf.eval_pdf(ctx, si, wo_em, active_em)
+                mis_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, pdf_em))
+                contrib = dr.select(active_em, em_weight * mis_em, mi.Color3f(0.0))
+                L += beta * f_em * contrib
+                if bounce == 0:
+                    f_em_d = bsdf.eval(ctx_diffuse, si, wo_em, active_em)
+                    L_d += f_em_d * contrib
+                else:
+                    L_d += beta_d * f_em * contrib
+
+                # -- BSDF sampling -------------------------------------------------------
+                bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
+                bsdf_weight = dr.select(active_next, bsdf_weight, mi.Color3f(0.0))
+                delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                if bounce == 0:
+                    f_all = bsdf.eval(ctx, si, bs.wo, active_next & ~delta)
+                    f_dif = bsdf.eval(ctx_diffuse, si, bs.wo, active_next & ~delta)
+                    ratio = dr.select(f_all > 0.0, f_dif / f_all, 0.0)
+                    ratio = dr.clip(dr.select(delta, 0.0, ratio), 0.0, 1.0)
+                    beta_d = bsdf_weight * ratio
+                else:
+                    beta_d *= bsdf_weight
+                beta *= bsdf_weight
+
+                prev_si = si
+                prev_bsdf_pdf = bs.pdf
+                prev_bsdf_delta = delta
+                ray = si.spawn_ray(si.to_world(bs.wo))
+
+                # -- Russian roulette ------------------------------------------------------
+                if bounce + 1 >= self.rr_depth:
+                    q = dr.minimum(dr.max(beta), 0.95)
+                    survive = sampler.next_1d(active_next) < q
+                    inv_q = dr.select(q > 0.0, 1.0 / q, 0.0)
+                    beta *= inv_q
+                    beta_d *= inv_q
+                    active_next &= survive
+                active = active_next & (dr.max(beta) > 0.0)
+                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
+
+            L_s = L - L_d
+            layers = {"color": L, "diffuse": L_d, "specular": L_s, "albedo": albedo, "normal": normal}
+            aovs = []
+            for name, _ in MOMENT1:
+                if name == "depth":
+                    aovs.append(depth)
+                else:
+                    v = layers[name]
+                    aovs += [v.x, v.y, v.z]
+            for name, _ in MOMENT2:
+                if name == "depth":
+                    aovs.append(depth * depth)
+                else:
+                    v = layers[name]
+                    aovs += [v.x * v.x, v.y * v.y, v.z * v.z]
+            return L, hit0, aovs
+
+    mi.register_integrator("kpcn_split", lambda props: SplitPathIntegrator(props))
+    _REGISTERED = True
+    return "kpcn_split"

@@ -1,0 +1,44 @@
+"""Shared fixtures: tiny scenes rendered for real with Mitsuba, once per test session."""
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+RES = (32, 32)
+
+
+@pytest.fixture(scope="session")
+def mi():
+    from kpcn.render import ensure_variant
+
+    return ensure_variant()
+
+
+@pytest.fixture(scope="session")
+def render(mi):
+    """Cached ``render(scene, spp, seed, role=0, resolution=RES)`` -> Frame."""
+    from kpcn.render import render_frame
+
+    cache = {}
+
+    def _render(scene="test:glossy", spp=8, seed=1, role=0, resolution=RES):
+        key = (scene, spp, seed, role, resolution)
+        if key not in cache:
+            cache[key] = render_frame(scene, spp=spp, seed=seed, role=role, resolution=resolution)
+        return cache[key]
+
+    return _render
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory, mi):
+    """A rendered data set: 3 procedural scenes at 48x48, inputs at 4 and 8 spp, 128-spp references."""
+    from kpcn.render import render_dataset
+
+    root = tmp_path_factory.mktemp("data")
+    render_dataset(root, n_scenes=3, spp_list=(4, 8), ref_spp=128, resolution=(48, 48), first_seed=100, progress=False)
+    return root

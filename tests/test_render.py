@@ -1,0 +1,157 @@
+"""The one-pass split renderer: properties of real Mitsuba renders."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from kpcn.io import read_exr
+from kpcn.render import load_scene, render_dataset, render_frame
+
+
+@pytest.mark.parametrize("scene", ["test:diffuse_box", "test:glossy", "test:glass", "test:envmap_open"])
+def test_diffuse_plus_specular_is_color(render, scene):
+    f = render(scene, spp=8)
+    np.testing.assert_allclose(f["diffuse"] + f["specular"], f["color"], rtol=1e-6, atol=1e-5)
+    assert (f["diffuse"] >= -1e-6).all(), "diffuse radiance must be non-negative"
+
+
+def test_split_sends_glossy_and_glass_to_specular(render):
+    f = render("test:glossy", spp=16)
+    g = render("test:glass", spp=16)
+    # non-diffuse materials are in view: a sizeable share of the light is specular
+    for fr in (f, g):
+        assert fr["specular"].sum() > 0.05 * fr["color"].sum()
+        assert fr["diffuse"].sum() > 0.05 * fr["color"].sum()
+
+
+def test_diffuse_scene_has_specular_only_on_emitters(render):
+    f = render("test:diffuse_box", spp=16)
+    spec = f["specular"].max(-1)
+    # an all-diffuse scene: specular is only emitters seen directly (radiance of lights)
+    lit = spec > 1e-6
+    assert lit.mean() < 0.2
+    assert (f["color"].max(-1)[lit] >= 0.5 * spec[lit]).all()
+    assert np.allclose(f["specular"][~lit], 0.0)
+
+
+def test_mean_matches_builtin_path_tracer(mi):
+    loaded = load_scene("test:glossy", (32, 32))
+    ours = render_frame("test:glossy", spp=512, seed=3, loaded=loaded)["color"]
+    sensor_film = loaded[0].sensors()[0].film()
+    assert tuple(sensor_film.size()) == (32, 32)
+    ref = np.array(mi.render(loaded[0], integrator=mi.load_dict({"type": "path", "max_depth": 8}), spp=512, seed=11))
+    assert ours.mean() == pytest.approx(ref[..., :3].mean(), rel=0.03)
+
+
+def test_variance_matches_empirical_variance_over_seeds(render):
+    frames = [render("test:glossy", spp=8, seed=200 + i) for i in range(16)]
+    for layer in ("color", "diffuse", "specular", "albedo", "normal", "depth"):
+        vals = np.stack([f[layer] for f in frames])
+        emp = vals.var(axis=0, ddof=1)
+        pred = np.stack([f[f"{layer}Variance"] for f in frames]).mean(0)
+        mask = pred > 1e-8
+        if mask.sum() < 10:
+            continue
+        ratio = emp[mask].mean() / pred[mask].mean()
+        assert 0.85 < ratio < 1.15, f"{layer}: empirical/predicted variance = {ratio:.3f}"
+
+
+def test_same_seed_same_image_different_seed_different_noise(render):
+    a = render("test:glossy", spp=4, seed=5)
+    from kpcn.render import render_frame as rf
+
+    b = rf("test:glossy", spp=4, seed=5, resolution=(32, 32))
+    c = render("test:glossy", spp=4, seed=6)
+    r = render("test:glossy", spp=4, seed=5, role=1)
+    np.testing.assert_array_equal(a["color"], b["color"])
+    assert not np.array_equal(a["color"], c["color"])
+    assert not np.array_equal(a["color"], r["color"]), "reference role must not reuse input seeds"
+    # the noise of two seeds is independent: correlation of residuals is small
+    ref = render("test:glossy", spp=256, seed=1, role=1)["color"]
+    ra, rc = (a["color"] - ref).ravel(), (c["color"] - ref).ravel()
+    assert abs(np.corrcoef(ra, rc)[0, 1]) < 0.3
+
+
+def test_features_of_first_hit(render):
+    f = render("test:envmap_open", spp=8)
+    n = np.linalg.norm(f["normal"], axis=-1)
+    hit = f["depth"][..., 0] > 0
+    assert hit.any() and (~hit).any()
+    # unit normals inside objects (pixels on silhouettes average hits with misses, whose normal is 0)
+    inner = hit.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            inner &= np.roll(np.roll(hit, dy, 0), dx, 1)
+    assert inner.sum() > 20
+    # (edges between faces average normals too: most, not all, inner pixels are unit length)
+    assert np.mean(np.abs(n[inner] - 1) < 0.05) > 0.8 and n.max() < 1 + 1e-5
+    assert np.all(f["albedo"][~hit] == 0) and np.all(n[~hit] == 0)
+
+
+def test_no_hit_scene(render):
+    f = render("test:no_hit", spp=4)
+    assert np.all(f["depth"] == 0) and np.all(f["albedo"] == 0)
+    assert f["color"].mean() > 0  # the environment is seen
+    assert np.allclose(f["diffuse"], 0)
+
+
+def test_xml_scene_is_overridden_and_rendered(mi, tmp_path):
+    xml = tmp_path / "scene.xml"
+    xml.write_text("""<scene version="3.0.0">
+  <integrator type="direct"/>
+  <sensor type="perspective">
+    <float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <sampler type="stratified"><integer name="sample_count" value="64"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="640"/><integer name="height" value="480"/>
+      <rfilter type="gaussian"/></film>
+  </sensor>
+  <emitter type="constant"><rgb name="radiance" value="1.0"/></emitter>
+  <shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+</scene>""")
+    scene, name, notes = load_scene(xml, (24, 16))
+    assert name == "scene"
+    assert any("rfilter" in n for n in notes) and any("integrator direct" in n for n in notes)
+    f = render_frame(xml, spp=4, resolution=(24, 16))
+    assert f["color"].shape == (16, 24, 3)
+    # a diffuse sphere under a white sky: albedo 0.5 where hit, 0 elsewhere
+    hit = f["depth"][..., 0] > 0
+    assert np.allclose(np.median(f["albedo"][hit]), 0.5, atol=1e-6)
+    assert f["albedo"].max() <= 0.5 + 1e-6 and np.all(f["albedo"][~hit] == 0)
+    assert not any(p.name.startswith(".scene") for p in tmp_path.iterdir()), "temporary XML left behind"
+
+
+def test_cli_writes_contract_exr(mi, tmp_path):
+    out = tmp_path / "n.exr"
+    r = subprocess.run([sys.executable, "-m", "kpcn.render", "frame", "test:glass", "--spp", "4", "--out", str(out),
+                        "--resolution", "16", "16", "--ref-spp", "16"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    f = read_exr(out, require=("color", "diffuse", "specular", "albedo", "normal", "depth", "colorVariance"))
+    assert f.meta["spp"] == 4 and f.meta["scene"] == "test:glass" and f.meta["renderTimeSeconds"] > 0
+    assert read_exr(tmp_path / "n_ref.exr").meta["spp"] == 16
+
+
+def test_dataset_manifest_and_resume(tiny_dataset):
+    manifest = json.loads((tiny_dataset / "manifest.json").read_text())
+    assert len(manifest["scenes"]) == 3 and manifest["ref_spp"] == 128
+    first = manifest["scenes"][0]
+    paths = [tiny_dataset / p for p in first["inputs"].values()] + [tiny_dataset / first["reference"]]
+    assert all(p.exists() for p in paths)
+    mtimes = [p.stat().st_mtime_ns for p in paths]
+    render_dataset(tiny_dataset, n_scenes=3, spp_list=(4, 8), ref_spp=128, resolution=(48, 48), first_seed=100, progress=False)
+    assert [p.stat().st_mtime_ns for p in paths] == mtimes, "existing frames must not be rendered again"
+    inp, ref = read_exr(paths[0]), read_exr(paths[-1])
+    assert inp.meta["spp"] == 4 and ref.meta["spp"] == 128
+    assert not np.array_equal(inp["color"], ref["color"])
+
+
+def test_clear_error_without_llvm(monkeypatch):
+    import drjit as dr
+
+    from kpcn import render as R
+
+    monkeypatch.setattr(dr.detail, "llvm_version", lambda: (16, 0, 6))
+    with pytest.raises(R.RendererUnavailable, match="libllvm19"):
+        R.ensure_variant()
