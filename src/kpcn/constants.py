@@ -1,0 +1,8 @@
+"""Constants shared by the feature pipeline and the networks (DESIGN.md 2.2)."""
+
+#: Added to the albedo before dividing the diffuse radiance by it (paper, eq. 6).
+EPS = 0.00316
+
+#: Channels per branch input: colour 3 + gradients 20 + colour variance 1
+#: + feature variances 3.
+N_FEATURES = 27

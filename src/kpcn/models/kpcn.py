@@ -1,0 +1,346 @@
+"""KPCN and DPCN denoisers (Bako et al. 2017), DESIGN.md sections 2.2 and 2.3.
+
+Each model has two branches with the same architecture and separate weights:
+
+* the **diffuse** branch works on ``diffuse / (albedo + EPS)`` (irradiance-like),
+* the **specular** branch works on ``log1p(specular)``.
+
+A branch is ``layers`` convolutions (``conv_size x conv_size``, ``width``
+channels, zero "same" padding, ReLU between, none after the last) on the
+``(B, 27, H, W)`` branch features, whose channels 0..2 are the noisy branch colour.
+
+* KPCN branch: the last conv predicts ``k*k`` logits per pixel, bounded to
+  ``logit_scale * tanh(z / logit_scale)`` (a softmax of logits around 1e4 is
+  one-hot with a zero gradient, so training would stall), normalised by a
+  softmax over the tap dimension and applied to the noisy branch colour with
+  :func:`kpcn.ops.kernel_apply` (``padding_mode`` "replicate" by default, so a
+  kernel at the frame border only mixes real pixel values and a constant image
+  stays constant everywhere). Because the weights are a softmax and the
+  padding replicates, each output pixel lies in the per-channel range (convex
+  hull) of its ``k x k`` neighbourhood in the noisy colour.
+* DPCN branch: the last conv predicts 3 channels, added to the noisy branch
+  colour (residual skip), so the output is a correction of the input.
+
+Initialisation (so that a fresh model is sane):
+
+* hidden convs: Kaiming-normal for ReLU, zero bias (keeps activations at the
+  scale of the input over 9 layers);
+* last conv: Kaiming-normal scaled by ``out_init_gain`` (0.1);
+* KPCN last-conv bias: a Gaussian log-prior ``-d^2 / (2 init_sigma^2)`` over the
+  tap offset ``d`` (clipped to ``-logit_scale / 2`` so no tap starts in the flat
+  part of the tanh), i.e. a fresh KPCN is close to a Gaussian blur of std
+  ``init_sigma`` pixels (``init_sigma=None``: zero bias, a near-uniform box);
+* a fresh DPCN is close to the identity (small residual).
+
+Reconstruction (:func:`reconstruct`)::
+
+    color = (albedo + EPS) * max(diffuse, 0) + expm1(clamp(specular, 0, SPECULAR_LOG_MAX))
+
+with NaN/Inf in the result mapped to 0 / the largest finite value, so the
+colour is always finite and non-negative. The ``diffuse`` and ``specular``
+outputs of :class:`Denoiser` are returned unclamped (so per-branch losses keep
+their gradient); for KPCN with non-negative inputs they are non-negative anyway.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+from torch import nn
+
+from ..constants import EPS, N_FEATURES
+from ..ops.kernel_apply import PADDING_MODES, kernel_apply
+from .registry import register_model
+
+__all__ = [
+    "EPS",
+    "SPECULAR_LOG_MAX",
+    "BranchConfig",
+    "KPCNBranch",
+    "DPCNBranch",
+    "Denoiser",
+    "reconstruct",
+    "kpcn",
+    "dpcn",
+]
+
+#: Upper clamp of the specular branch output (log1p space) before ``expm1``;
+#: ``expm1(80) ~ 5.5e34`` is finite in float32.
+SPECULAR_LOG_MAX = 80.0
+
+
+@dataclass
+class BranchConfig:
+    """Architecture of one branch (both branches share it).
+
+    Attributes:
+        layers: number of conv layers (>= 1), the last one included.
+        width: channels of the hidden layers.
+        conv_size: odd spatial size of every conv.
+        kernel_size: odd size ``k`` of the predicted per-pixel kernels (KPCN only).
+        in_channels: channels of the branch input (27, see DESIGN.md 2.2).
+        logit_scale: bound of the kernel logits, ``s * tanh(z / s)``; ``None``
+            leaves them unbounded (KPCN only).
+        padding_mode: ``"replicate"`` or ``"zeros"`` for the kernel application (KPCN only).
+        init_sigma: std in pixels of the initial Gaussian kernel; ``None`` for a
+            near-uniform initial kernel (KPCN only).
+        out_init_gain: scale of the last conv's initial weights.
+    """
+
+    layers: int = 9
+    width: int = 100
+    conv_size: int = 5
+    kernel_size: int = 21
+    in_channels: int = N_FEATURES
+    logit_scale: float | None = 16.0
+    padding_mode: str = "replicate"
+    init_sigma: float | None = 1.5
+    out_init_gain: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("layers", "width", "conv_size", "kernel_size", "in_channels"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"BranchConfig.{name} must be a positive integer, got {v!r}")
+        for name in ("conv_size", "kernel_size"):
+            if getattr(self, name) % 2 == 0:
+                raise ValueError(f"BranchConfig.{name} must be odd, got {getattr(self, name)}")
+        if self.in_channels < 3:
+            raise ValueError(f"BranchConfig.in_channels must be >= 3 (colour first), got {self.in_channels}")
+        if self.logit_scale is not None and not (self.logit_scale > 0 and math.isfinite(self.logit_scale)):
+            raise ValueError(f"BranchConfig.logit_scale must be a positive number or None, got {self.logit_scale!r}")
+        if self.padding_mode not in PADDING_MODES:
+            raise ValueError(f"BranchConfig.padding_mode must be one of {PADDING_MODES}, got {self.padding_mode!r}")
+        if self.init_sigma is not None and not self.init_sigma > 0:
+            raise ValueError(f"BranchConfig.init_sigma must be positive or None, got {self.init_sigma!r}")
+        if not self.out_init_gain >= 0:
+            raise ValueError(f"BranchConfig.out_init_gain must be >= 0, got {self.out_init_gain!r}")
+
+    @property
+    def network_radius(self) -> int:
+        """Receptive radius of the conv stack: ``layers * (conv_size // 2)``."""
+        return self.layers * (self.conv_size // 2)
+
+
+def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    c_in = cfg.in_channels
+    pad = cfg.conv_size // 2
+    for layer in range(cfg.layers):
+        last = layer == cfg.layers - 1
+        c_out = out_channels if last else cfg.width
+        conv = nn.Conv2d(c_in, c_out, cfg.conv_size, padding=pad)
+        nn.init.kaiming_normal_(conv.weight, nonlinearity="relu" if not last else "linear")
+        if last:
+            with torch.no_grad():
+                conv.weight.mul_(cfg.out_init_gain)
+        nn.init.zeros_(conv.bias)
+        mods.append(conv)
+        if not last:
+            mods.append(nn.ReLU(inplace=True))
+        c_in = c_out
+    return nn.Sequential(*mods)
+
+
+def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
+    if not isinstance(x, torch.Tensor) or x.dim() != 4:
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{who}: input must be a (B, {cfg.in_channels}, H, W) tensor, got {shape}")
+    if x.shape[1] != cfg.in_channels:
+        raise ValueError(f"{who}: input must have {cfg.in_channels} channels, got {x.shape[1]} ({tuple(x.shape)})")
+
+
+class KPCNBranch(nn.Module):
+    """Kernel-predicting branch.
+
+    Shape:
+        - input: ``(B, in_channels, H, W)``; channels 0..2 are the noisy branch colour
+        - output: ``(B, 3, H, W)`` filtered branch colour
+    """
+
+    def __init__(self, config: BranchConfig) -> None:
+        super().__init__()
+        self.config = config
+        k = config.kernel_size
+        self.net = _conv_stack(config, k * k)
+        if config.init_sigma is not None:
+            with torch.no_grad():
+                self.net[-1].bias.copy_(self._prior_bias(config))
+
+    @staticmethod
+    def _prior_bias(cfg: BranchConfig) -> torch.Tensor:
+        k, r = cfg.kernel_size, cfg.kernel_size // 2
+        off = torch.arange(k, dtype=torch.float64) - r
+        d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
+        prior = -d2 / (2.0 * cfg.init_sigma**2)
+        s = cfg.logit_scale
+        if s is None:
+            return prior.clamp(min=-30.0).float()
+        prior = prior.clamp(min=-0.5 * s)
+        return (s * torch.atanh(prior / s)).float()  # so that s*tanh(bias/s) == prior
+
+    @property
+    def receptive_radius(self) -> int:
+        """Pixels of input on each side that an output pixel depends on.
+
+        The weights at a pixel see ``layers * (conv_size // 2)`` pixels, the
+        kernel gathers the noisy colour ``kernel_size // 2`` pixels away, and the
+        colour is the raw input, so the radius is the larger of the two.
+        """
+        return max(self.config.network_radius, self.config.kernel_size // 2)
+
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Bounded kernel logits ``(B, k*k, H, W)`` (contiguous NCHW)."""
+        z = self.net(x).contiguous()
+        s = self.config.logit_scale
+        if s is None:
+            return z
+        return torch.tanh(z / s) * s
+
+    def kernels(self, x: torch.Tensor) -> torch.Tensor:
+        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)``, taps in ``F.unfold`` order."""
+        _check_branch_input(x, self.config, type(self).__name__)
+        return torch.softmax(self.logits(x), dim=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        weights = self.kernels(x)
+        return kernel_apply(x[:, :3], weights, self.config.kernel_size, self.config.padding_mode)
+
+
+class DPCNBranch(nn.Module):
+    """Direct-prediction branch: ``noisy colour + conv_stack(x)``.
+
+    Shape:
+        - input: ``(B, in_channels, H, W)``; channels 0..2 are the noisy branch colour
+        - output: ``(B, 3, H, W)``
+    """
+
+    def __init__(self, config: BranchConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.net = _conv_stack(config, 3)
+
+    @property
+    def receptive_radius(self) -> int:
+        """``layers * (conv_size // 2)``."""
+        return self.config.network_radius
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        _check_branch_input(x, self.config, type(self).__name__)
+        return x[:, :3] + self.net(x)
+
+
+_BRANCHES = {"kpcn": KPCNBranch, "dpcn": DPCNBranch}
+
+
+def reconstruct(diffuse: torch.Tensor, specular: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
+    """Final radiance from the branch outputs (DESIGN.md 2.2), always finite and >= 0.
+
+    ``color = (albedo + EPS) * max(diffuse, 0) + expm1(clamp(specular, 0, SPECULAR_LOG_MAX))``;
+    NaN becomes 0 and +Inf the largest finite value of the dtype.
+
+    Shapes: all ``(B, 3, H, W)``.
+    """
+    color = (albedo + EPS) * diffuse.clamp(min=0) + torch.expm1(specular.clamp(0.0, SPECULAR_LOG_MAX))
+    big = torch.finfo(color.dtype).max
+    return torch.nan_to_num(color, nan=0.0, posinf=big, neginf=0.0).clamp(min=0.0)
+
+
+class Denoiser(nn.Module):
+    """Two-branch denoiser (diffuse + specular) with the KPCN/DPCN reconstruction.
+
+    Args:
+        kind: ``"kpcn"`` or ``"dpcn"``.
+        config: :class:`BranchConfig` shared by both branches.
+
+    Attributes:
+        diffuse, specular: the two branch modules (train them on their own by
+            calling them directly on their ``(B, 27, H, W)`` features).
+
+    ``forward(x_diffuse, x_specular, albedo)`` takes ``(B, 27, H, W)`` branch
+    features (either may be ``None``: that component is then zero and its
+    branch is not run) and the ``(B, 3, H, W)`` albedo, and returns a dict:
+
+    - ``diffuse``: ``(B, 3, H, W)`` filtered ``diffuse / (albedo + EPS)`` (unclamped),
+    - ``specular``: ``(B, 3, H, W)`` filtered ``log1p(specular)`` (unclamped),
+    - ``color``: ``(B, 3, H, W)`` final radiance, :func:`reconstruct` of the two.
+    """
+
+    def __init__(self, kind: str, config: BranchConfig | None = None) -> None:
+        super().__init__()
+        if kind not in _BRANCHES:
+            raise ValueError(f"Denoiser: kind must be one of {sorted(_BRANCHES)}, got {kind!r}")
+        self.kind = kind
+        self.config = config if config is not None else BranchConfig()
+        cls = _BRANCHES[kind]
+        self.diffuse = cls(self.config)
+        self.specular = cls(self.config)
+
+    @property
+    def receptive_radius(self) -> int:
+        """Halo (pixels) a tile needs on each side so its interior equals full-frame inference."""
+        return self.diffuse.receptive_radius
+
+    def hparams(self) -> dict:
+        """``{"name": kind, **config}``; ``create_model(**hparams())`` rebuilds the architecture."""
+        return {"name": self.kind, **asdict(self.config)}
+
+    def extra_repr(self) -> str:
+        return f"kind={self.kind!r}, receptive_radius={self.receptive_radius}"
+
+    def forward(
+        self,
+        x_diffuse: torch.Tensor | None,
+        x_specular: torch.Tensor | None,
+        albedo: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
+        if not isinstance(albedo, torch.Tensor) or albedo.dim() != 4 or albedo.shape[1] != 3:
+            shape = tuple(albedo.shape) if isinstance(albedo, torch.Tensor) else type(albedo).__name__
+            raise ValueError(f"Denoiser: albedo must be a (B, 3, H, W) tensor, got {shape}")
+        b, _, h, w = albedo.shape
+        for name, x in (("x_diffuse", x_diffuse), ("x_specular", x_specular)):
+            if x is None:
+                continue
+            _check_branch_input(x, self.config, f"Denoiser ({name})")
+            if (x.shape[0], x.shape[2], x.shape[3]) != (b, h, w):
+                raise ValueError(
+                    f"Denoiser: {name} {tuple(x.shape)} and albedo {tuple(albedo.shape)} "
+                    "must agree in batch and spatial size"
+                )
+        shape = (b, 3, h, w)
+        diffuse = self.diffuse(x_diffuse) if x_diffuse is not None else albedo.new_zeros(shape)
+        specular = self.specular(x_specular) if x_specular is not None else albedo.new_zeros(shape)
+        color = reconstruct(diffuse, specular, albedo)
+        return {"diffuse": diffuse, "specular": specular, "color": color}
+
+
+def _build(kind: str, cfg: dict) -> Denoiser:
+    config = cfg.pop("config", None)
+    if config is not None:
+        if cfg:
+            raise ValueError(f"create_model({kind!r}): pass either config= or keyword fields, not both ({sorted(cfg)})")
+        if not isinstance(config, BranchConfig):
+            config = BranchConfig(**dict(config))
+        return Denoiser(kind, config)
+    known = {f.name for f in fields(BranchConfig)}
+    unknown = sorted(set(cfg) - known)
+    if unknown:
+        raise ValueError(f"create_model({kind!r}): unknown config field(s) {unknown}; valid fields: {sorted(known)}")
+    return Denoiser(kind, BranchConfig(**cfg))
+
+
+@register_model("kpcn")
+def kpcn(**cfg) -> Denoiser:
+    """Kernel-predicting denoiser; keyword fields of :class:`BranchConfig` (or ``config=``)."""
+    return _build("kpcn", cfg)
+
+
+@register_model("dpcn")
+def dpcn(**cfg) -> Denoiser:
+    """Direct-prediction denoiser; keyword fields of :class:`BranchConfig` (or ``config=``).
+
+    ``kernel_size``, ``logit_scale``, ``padding_mode`` and ``init_sigma`` are accepted and unused.
+    """
+    return _build("dpcn", cfg)

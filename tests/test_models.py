@@ -1,0 +1,228 @@
+import pytest
+import torch
+import torch.nn.functional as F
+
+from kpcn.constants import EPS, N_FEATURES
+from kpcn.models import (
+    BranchConfig,
+    Denoiser,
+    KPCNBranch,
+    create_model,
+    list_models,
+    reconstruct,
+    register_model,
+)
+
+TINY = dict(layers=3, width=8, conv_size=3, kernel_size=5)
+
+
+def _inputs(b=2, h=12, w=13, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    xd = torch.rand(b, N_FEATURES, h, w, generator=g, dtype=dtype)
+    xs = torch.rand(b, N_FEATURES, h, w, generator=g, dtype=dtype)
+    albedo = torch.rand(b, 3, h, w, generator=g, dtype=dtype)
+    return xd, xs, albedo
+
+
+def _neighbourhood_range(colour, k):
+    r = k // 2
+    b, c, h, w = colour.shape
+    cols = F.unfold(F.pad(colour, (r, r, r, r), mode="replicate"), k).view(b, c, k * k, h, w)
+    return cols.min(dim=2).values, cols.max(dim=2).values
+
+
+def test_registry_lists_and_creates():
+    assert {"kpcn", "dpcn"} <= set(list_models())
+    for name in ("kpcn", "dpcn"):
+        m = create_model(name, **TINY)
+        assert isinstance(m, Denoiser) and m.kind == name
+        assert m.config == BranchConfig(**TINY)
+    # rebuild from hparams
+    m = create_model("kpcn", **TINY)
+    m2 = create_model(**m.hparams())
+    m2.load_state_dict(m.state_dict())
+
+
+def test_registry_errors():
+    with pytest.raises(ValueError, match="known models: .*dpcn.*kpcn"):
+        create_model("unet9000")
+    with pytest.raises(ValueError, match="unknown config field"):
+        create_model("kpcn", layerz=3)
+    with pytest.raises(ValueError, match="odd"):
+        create_model("kpcn", kernel_size=4)
+    with pytest.raises(ValueError, match="already registered"):
+
+        @register_model("kpcn")
+        def other(**cfg):  # pragma: no cover
+            return None
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn"])
+def test_output_shapes_and_channels_last(name):
+    torch.manual_seed(0)
+    m = create_model(name, **TINY)
+    xd, xs, albedo = _inputs()
+    out = m(xd, xs, albedo)
+    assert set(out) == {"diffuse", "specular", "color"}
+    for v in out.values():
+        assert v.shape == albedo.shape
+    cl = lambda t: t.to(memory_format=torch.channels_last)  # noqa: E731
+    out_cl = m(cl(xd), cl(xs), cl(albedo))
+    for key in out:
+        torch.testing.assert_close(out_cl[key], out[key], rtol=1e-5, atol=1e-5)
+
+
+def test_kpcn_output_in_convex_hull():
+    torch.manual_seed(1)
+    # a large output gain gives sharp, irregular kernels
+    m = create_model("kpcn", **TINY, out_init_gain=5.0)
+    xd, xs, albedo = _inputs(seed=1)
+    xd[:, :3] = torch.randn_like(xd[:, :3]) * 10  # signed colours too
+    out = m(xd, xs, albedo)
+    for key, x in (("diffuse", xd), ("specular", xs)):
+        lo, hi = _neighbourhood_range(x[:, :3], 5)
+        y = out[key]
+        assert (y >= lo - 1e-4).all() and (y <= hi + 1e-4).all()
+        assert not torch.allclose(y, x[:, :3])  # it did filter
+
+
+def test_kpcn_kernels_are_normalised_and_bounded():
+    torch.manual_seed(2)
+    branch = KPCNBranch(BranchConfig(**TINY, logit_scale=4.0, out_init_gain=100.0))
+    x = torch.rand(1, N_FEATURES, 9, 9) * 100
+    w = branch.kernels(x)
+    torch.testing.assert_close(w.sum(dim=1), torch.ones(1, 9, 9))
+    logits = branch.logits(x)
+    assert logits.abs().max() <= 4.0
+    # ratio of any two taps is bounded by exp(2 * logit_scale)
+    assert (w.max(dim=1).values / w.min(dim=1).values).max() <= torch.exp(torch.tensor(8.0)) * 1.001
+
+
+def test_fresh_kpcn_is_mild_blur_and_dpcn_near_identity():
+    torch.manual_seed(3)
+    k = 5
+    m = create_model("kpcn", **TINY)
+    xd, _, _ = _inputs(seed=3)
+    w = m.diffuse.kernels(xd).mean(dim=(0, 2, 3)).view(k, k)
+    assert w.argmax() == (k // 2) * k + k // 2  # centre tap dominates
+    d = create_model("dpcn", **TINY)
+    y = d.diffuse(xd)
+    assert (y - xd[:, :3]).abs().mean() < 0.5 * xd[:, :3].abs().mean()
+
+
+def test_reconstruction_formula():
+    torch.manual_seed(4)
+    m = create_model("kpcn", **TINY)
+    xd, xs, albedo = _inputs(seed=4)
+    out = m(xd, xs, albedo)
+    expected = (albedo + EPS) * out["diffuse"] + torch.expm1(out["specular"])
+    torch.testing.assert_close(out["color"], expected)
+    assert (out["diffuse"] >= 0).all() and (out["specular"] >= 0).all()
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn"])
+@pytest.mark.parametrize("scale", [1.0, 1e3, 1e8, 1e30])
+def test_colour_finite_and_non_negative(name, scale):
+    torch.manual_seed(5)
+    m = create_model(name, **TINY)
+    xd, xs, albedo = _inputs(seed=5)
+    xd = (xd - 0.3) * scale  # includes negative values
+    xs = (xs - 0.3) * scale
+    out = m(xd, xs, albedo * scale)
+    assert torch.isfinite(out["color"]).all()
+    assert (out["color"] >= 0).all()
+
+
+def test_reconstruct_clamps():
+    d = torch.tensor([-1.0, 2.0, float("inf"), 1.0]).view(1, 1, 1, 4).expand(1, 3, 1, 4)
+    s = torch.tensor([-5.0, 0.5, 1.0, 1e4]).view(1, 1, 1, 4).expand(1, 3, 1, 4)
+    a = torch.full((1, 3, 1, 4), 0.5)
+    c = reconstruct(d, s, a)
+    assert torch.isfinite(c).all() and (c >= 0).all()
+    torch.testing.assert_close(c[0, 0, 0, 0], torch.tensor(0.0))
+    torch.testing.assert_close(c[0, 0, 0, 1], (0.5 + EPS) * 2.0 + torch.expm1(torch.tensor(0.5)))
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn"])
+def test_branch_skipping(name):
+    torch.manual_seed(6)
+    m = create_model(name, **TINY)
+    xd, xs, albedo = _inputs(seed=6)
+    full = m(xd, xs, albedo)
+    only_d = m(xd, None, albedo)
+    only_s = m(None, xs, albedo)
+    assert torch.equal(only_d["specular"], torch.zeros_like(albedo))
+    assert torch.equal(only_s["diffuse"], torch.zeros_like(albedo))
+    torch.testing.assert_close(only_d["diffuse"], full["diffuse"])
+    torch.testing.assert_close(only_s["specular"], full["specular"])
+    # DPCN outputs may be negative: the reconstruction clamps them
+    torch.testing.assert_close(only_d["color"], (albedo + EPS) * full["diffuse"].clamp(min=0))
+    torch.testing.assert_close(only_s["color"], torch.expm1(full["specular"].clamp(min=0)))
+    both_none = m(None, None, albedo)
+    assert torch.equal(both_none["color"], torch.zeros_like(albedo))
+
+
+def test_kpcn_constant_colour_stays_constant():
+    torch.manual_seed(7)
+    m = create_model("kpcn", **TINY, out_init_gain=3.0)  # replicate padding by default
+    xd, xs, albedo = _inputs(seed=7)
+    xd[:, :3] = torch.tensor([0.2, 1.5, 7.0]).view(1, 3, 1, 1)
+    y = m.diffuse(xd)
+    torch.testing.assert_close(y, xd[:, :3].expand_as(y).contiguous(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "name,cfg,radius",
+    [
+        ("kpcn", dict(layers=3, width=6, conv_size=3, kernel_size=5), 3),  # network wider than kernel
+        ("kpcn", dict(layers=2, width=6, conv_size=3, kernel_size=9), 4),  # kernel wider than network
+        ("dpcn", dict(layers=2, width=6, conv_size=5, kernel_size=5), 4),
+    ],
+)
+def test_receptive_radius_impulse_response(name, cfg, radius):
+    torch.manual_seed(8)
+    m = create_model(name, **cfg, out_init_gain=1.0).double()
+    assert m.receptive_radius == radius
+    h = w = 2 * radius + 9
+    g = torch.Generator().manual_seed(8)
+    x = torch.rand(1, N_FEATURES, h, w, generator=g, dtype=torch.float64)
+    cy, cx = h // 2, w // 2
+    x2 = x.clone()
+    x2[:, :, cy, cx] += torch.rand(N_FEATURES, generator=g, dtype=torch.float64) + 0.5
+    with torch.no_grad():
+        diff = (m.diffuse(x2) - m.diffuse(x)).abs().amax(dim=(0, 1))
+    ys, xs = torch.nonzero(diff > 1e-12, as_tuple=True)
+    dist = torch.maximum((ys - cy).abs(), (xs - cx).abs())
+    assert dist.max().item() == radius  # changes reach exactly the radius, not further
+
+
+def test_receptive_radius_formula():
+    assert create_model("kpcn").receptive_radius == max(9 * 2, 10)
+    assert create_model("kpcn", layers=2, conv_size=3, kernel_size=21).receptive_radius == 10
+    assert create_model("dpcn", layers=9, conv_size=5).receptive_radius == 18
+
+
+def test_backward_gives_finite_gradients():
+    torch.manual_seed(9)
+    m = create_model("kpcn", **TINY)
+    xd, xs, albedo = _inputs(b=1, h=10, w=10, seed=9)
+    out = m(xd, xs, albedo)
+    out["color"].abs().mean().backward()
+    grads = [p.grad for p in m.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_input_checks():
+    m = create_model("kpcn", **TINY)
+    xd, xs, albedo = _inputs()
+    with pytest.raises(ValueError, match="27 channels"):
+        m(xd[:, :20], xs, albedo)
+    with pytest.raises(ValueError, match="albedo"):
+        m(xd, xs, albedo[:, :2])
+    with pytest.raises(ValueError, match="batch and spatial"):
+        m(xd[:, :, :10], xs, albedo)
+    with pytest.raises(ValueError, match="layers"):
+        BranchConfig(layers=0)
+    with pytest.raises(ValueError, match="padding_mode"):
+        BranchConfig(padding_mode="reflect")
