@@ -177,6 +177,8 @@ def test_kpcn_constant_colour_stays_constant():
         ("kpcn", dict(layers=3, width=6, conv_size=3, kernel_size=5), 3),  # network wider than kernel
         ("kpcn", dict(layers=2, width=6, conv_size=3, kernel_size=9), 4),  # kernel wider than network
         ("dpcn", dict(layers=2, width=6, conv_size=5, kernel_size=5), 4),
+        ("kpcn", dict(layers=4, width=6, conv_size=3, kernel_size=5, dilations=[1, 2, 4, 1]), 8),
+        ("dpcn", dict(layers=3, width=6, conv_size=3, dilations=[1, 3, 2], input_transform="none"), 6),
     ],
 )
 def test_receptive_radius_impulse_response(name, cfg, radius):
@@ -226,3 +228,16 @@ def test_input_checks():
         BranchConfig(layers=0)
     with pytest.raises(ValueError, match="padding_mode"):
         BranchConfig(padding_mode="reflect")
+
+
+def test_log_input_transform_makes_network_input_scale_robust():
+    from kpcn.models.kpcn import transform_input
+
+    x = torch.tensor([-1e8, -1.0, 0.0, 1.0, 1e8])
+    y = transform_input(x, "log")
+    assert torch.all(torch.sign(y) == torch.sign(x)) and y.abs().max() < 20
+    assert torch.equal(transform_input(x, "none"), x)
+    with pytest.raises(ValueError, match="input_transform"):
+        BranchConfig(input_transform="sqrt")
+    with pytest.raises(ValueError, match="dilations"):
+        BranchConfig(layers=3, dilations=[1, 2])

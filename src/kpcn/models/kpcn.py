@@ -87,6 +87,13 @@ class BranchConfig:
         init_sigma: std in pixels of the initial Gaussian kernel; ``None`` for a
             near-uniform initial kernel (KPCN only).
         out_init_gain: scale of the last conv's initial weights.
+        dilations: one dilation per conv layer (``None``: all 1). Growing
+            dilations (1, 2, 4, 8, ...) give a wide context at the cost of a
+            plain conv: the "dilated" configs use them.
+        input_transform: ``"log"`` feeds the conv stack ``sign(x) log1p(|x|)`` of
+            the features (the kernels are still applied to the raw colour), so
+            the network sees the same range whether the scene is dim or 1e8
+            bright; ``"none"`` feeds the raw features (the paper).
     """
 
     layers: int = 9
@@ -98,6 +105,8 @@ class BranchConfig:
     padding_mode: str = "replicate"
     init_sigma: float | None = 1.5
     out_init_gain: float = 0.1
+    dilations: list[int] | None = None
+    input_transform: str = "log"
 
     def __post_init__(self) -> None:
         for name in ("layers", "width", "conv_size", "kernel_size", "in_channels"):
@@ -115,23 +124,34 @@ class BranchConfig:
             raise ValueError(f"BranchConfig.padding_mode must be one of {PADDING_MODES}, got {self.padding_mode!r}")
         if self.init_sigma is not None and not self.init_sigma > 0:
             raise ValueError(f"BranchConfig.init_sigma must be positive or None, got {self.init_sigma!r}")
+        if self.dilations is not None:
+            self.dilations = [int(d) for d in self.dilations]
+            if len(self.dilations) != self.layers or min(self.dilations) < 1:
+                raise ValueError(
+                    f"BranchConfig.dilations must list {self.layers} positive integers (one per layer), got {self.dilations!r}"
+                )
+        if self.input_transform not in INPUT_TRANSFORMS:
+            raise ValueError(f"BranchConfig.input_transform must be one of {INPUT_TRANSFORMS}, got {self.input_transform!r}")
         if not self.out_init_gain >= 0:
             raise ValueError(f"BranchConfig.out_init_gain must be >= 0, got {self.out_init_gain!r}")
 
     @property
     def network_radius(self) -> int:
-        """Receptive radius of the conv stack: ``layers * (conv_size // 2)``."""
-        return self.layers * (self.conv_size // 2)
+        """Receptive radius of the conv stack: ``sum(dilation) * (conv_size // 2)``."""
+        return sum(self.layer_dilations) * (self.conv_size // 2)
+
+    @property
+    def layer_dilations(self) -> list[int]:
+        return list(self.dilations) if self.dilations is not None else [1] * self.layers
 
 
 def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
     mods: list[nn.Module] = []
     c_in = cfg.in_channels
-    pad = cfg.conv_size // 2
-    for layer in range(cfg.layers):
+    for layer, dil in enumerate(cfg.layer_dilations):
         last = layer == cfg.layers - 1
         c_out = out_channels if last else cfg.width
-        conv = nn.Conv2d(c_in, c_out, cfg.conv_size, padding=pad)
+        conv = nn.Conv2d(c_in, c_out, cfg.conv_size, padding=dil * (cfg.conv_size // 2), dilation=dil)
         nn.init.kaiming_normal_(conv.weight, nonlinearity="relu" if not last else "linear")
         if last:
             with torch.no_grad():
@@ -142,6 +162,16 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
             mods.append(nn.ReLU(inplace=True))
         c_in = c_out
     return nn.Sequential(*mods)
+
+
+INPUT_TRANSFORMS = ("log", "none")
+
+
+def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
+    """What the conv stack sees: ``sign(x) log1p(|x|)`` for ``"log"``, ``x`` for ``"none"``."""
+    if kind == "none":
+        return x
+    return torch.sign(x) * torch.log1p(x.abs())
 
 
 def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
@@ -193,7 +223,7 @@ class KPCNBranch(nn.Module):
 
     def logits(self, x: torch.Tensor) -> torch.Tensor:
         """Bounded kernel logits ``(B, k*k, H, W)`` (contiguous NCHW)."""
-        z = self.net(x).contiguous()
+        z = self.net(transform_input(x, self.config.input_transform)).contiguous()
         s = self.config.logit_scale
         if s is None:
             return z
@@ -229,7 +259,7 @@ class DPCNBranch(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         _check_branch_input(x, self.config, type(self).__name__)
-        return x[:, :3] + self.net(x)
+        return x[:, :3] + self.net(transform_input(x, self.config.input_transform))
 
 
 _BRANCHES = {"kpcn": KPCNBranch, "dpcn": DPCNBranch}
