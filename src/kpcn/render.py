@@ -153,6 +153,11 @@ def _override_xml(path: Path, resolution: tuple[int, int] | None) -> tuple[str, 
     return ET.tostring(root, encoding="unicode"), notes
 
 
+def _log_notes(name: str, notes: list[str]) -> None:
+    for n in notes:
+        log.info("%s: %s", name, n)
+
+
 def load_scene(scene: Any, resolution: tuple[int, int] | None = None):
     """Load ``scene`` with kpcn's overrides. Returns ``(mi.Scene, name, notes)``.
 
@@ -171,11 +176,13 @@ def load_scene(scene: Any, resolution: tuple[int, int] | None = None):
     if isinstance(scene, dict):
         name = locals().get("name") or scene.get("kpcn_name", "dict")
         d, notes = _override_dict({k: v for k, v in scene.items() if k != "kpcn_name"}, resolution)
+        _log_notes(name, notes)
         return mi.load_dict(d), name, notes
     path = Path(scene)
     if not path.exists():
         raise FileNotFoundError(f"scene file not found: {path}")
     text, notes = _override_xml(path, resolution)
+    _log_notes(path.stem, notes)
     # write next to the original so relative paths (meshes, textures) resolve
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.kpcn.", suffix=".xml", dir=path.parent)
     try:
@@ -234,8 +241,6 @@ def render_frame(
         raise ValueError(f"spp must be >= 2 to estimate variances, got {spp}")
     mi = ensure_variant()
     mi_scene, name, notes = loaded or load_scene(scene, resolution)
-    for n in notes:
-        log.info("%s: %s", name, n)
     integrator = mi.load_dict({"type": "kpcn_split", "max_depth": int(max_depth)})
 
     layout = [("color", 3)] + aov_layout()

@@ -1,0 +1,102 @@
+"""Baseline denoisers to compare kpcn models against.
+
+Intel Open Image Denoise (OIDN) through the optional ``pyoidn`` package
+(``pip install kpcn[oidn]``)::
+
+    from kpcn.baselines import oidn_available, oidn_denoise
+    if oidn_available():
+        out = oidn_denoise(frame["color"], frame["albedo"], frame["normal"])   # (H, W, 3) float32
+
+What the wrapper does about pyoidn's input rules (``pyoidn.denoise``, OIDN 2.5):
+
+- it accepts only float16/float32 ``(H, W, 3)`` arrays (float64 is a
+  ``TypeError``): everything is converted to contiguous float32;
+- HDR colour must be non-negative, albedo in [0, 1], normals in [-1, 1], and it
+  does not reject NaN/Inf (they are passed on silently): colour is clamped at 0,
+  albedo to [0, 1] (Mitsuba's albedo exceeds 1 on some conductors), normals to
+  [-1, 1], non-finite values are replaced by 0;
+- one-channel inputs are broadcast to three channels.
+
+The auxiliary buffers of a render are averaged over few samples and are not
+noise-free, so they are passed with ``clean_aux=False`` (OIDN prefilters them).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["oidn_available", "oidn_version", "oidn_denoise"]
+
+
+def oidn_available() -> bool:
+    """Whether ``pyoidn`` can be imported (and so OIDN can run here)."""
+    try:
+        import pyoidn  # noqa: F401
+    except Exception:  # ImportError, or the bundled library failing to load
+        return False
+    return True
+
+
+def oidn_version() -> str | None:
+    """OIDN's version string (e.g. ``"2.5.1"``), or None when pyoidn is missing."""
+    try:
+        from pyoidn.version import oidn_version as v
+    except Exception:
+        return None
+    return str(v)
+
+
+def _as_rgb32(x: np.ndarray, name: str, lo: float, hi: float | None) -> np.ndarray:
+    """``(H, W, 1|3)`` -> contiguous float32 ``(H, W, 3)``, finite, clipped to [lo, hi].
+
+    NaN and -Inf become ``lo``; +Inf becomes ``hi`` or, when unbounded, the largest finite value.
+    """
+    a = np.asarray(x, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[-1] not in (1, 3):
+        raise ValueError(f"oidn_denoise: {name} must be (H, W, 3) or (H, W, 1), got shape {a.shape}")
+    if a.shape[-1] == 1:
+        a = np.repeat(a, 3, axis=-1)
+    finite = np.isfinite(a)
+    if not finite.all():
+        top = hi if hi is not None else (float(a[finite].max()) if finite.any() else lo)
+        a = np.nan_to_num(a, nan=lo, posinf=max(top, lo), neginf=lo)
+    return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
+
+
+def oidn_denoise(
+    color: np.ndarray,
+    albedo: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    *,
+    quality: str = "high",
+) -> np.ndarray:
+    """Denoise an HDR render with OIDN's ``RT`` filter (``hdr=True``).
+
+    Args:
+        color: ``(H, W, 3)`` linear radiance (noisy).
+        albedo: ``(H, W, 3)`` first-hit albedo, or None.
+        normal: ``(H, W, 3)`` first-hit normal in [-1, 1], or None. OIDN needs
+            albedo whenever normal is given; a normal without albedo is dropped.
+        quality: ``"high"``, ``"balanced"`` or ``"fast"``.
+
+    Returns:
+        ``(H, W, 3)`` float32 denoised radiance.
+
+    Raises:
+        ImportError: pyoidn is not installed.
+        ValueError: shapes disagree.
+    """
+    try:
+        import pyoidn
+    except ImportError as exc:
+        raise ImportError("OIDN baseline needs the pyoidn package: pip install pyoidn (or kpcn[oidn])") from exc
+
+    c = _as_rgb32(color, "color", 0.0, None)
+    a = _as_rgb32(albedo, "albedo", 0.0, 1.0) if albedo is not None else None
+    n = _as_rgb32(normal, "normal", -1.0, 1.0) if normal is not None and a is not None else None
+    for name, aux in (("albedo", a), ("normal", n)):
+        if aux is not None and aux.shape != c.shape:
+            raise ValueError(f"oidn_denoise: {name} {aux.shape} and color {c.shape} differ in shape")
+    out = pyoidn.denoise(c, a, n, hdr=True, clean_aux=False, quality=quality)
+    return np.asarray(out, dtype=np.float32)
