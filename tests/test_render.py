@@ -45,8 +45,10 @@ def test_mean_matches_builtin_path_tracer(mi):
     assert ours.mean() == pytest.approx(ref[..., :3].mean(), rel=0.03)
 
 
-def test_variance_matches_empirical_variance_over_seeds(render):
-    frames = [render("test:glossy", spp=8, seed=200 + i) for i in range(16)]
+@pytest.mark.parametrize("scene", ["test:glossy", "test:glass"])
+def test_variance_matches_empirical_variance_over_seeds(render, scene):
+    # 40 independent renders: glossy highlights are heavy-tailed, so fewer seeds give a noisy ratio
+    frames = [render(scene, spp=8, seed=200 + i) for i in range(40)]
     for layer in ("color", "diffuse", "specular", "albedo", "normal", "depth"):
         vals = np.stack([f[layer] for f in frames])
         emp = vals.var(axis=0, ddof=1)
@@ -68,10 +70,18 @@ def test_same_seed_same_image_different_seed_different_noise(render):
     np.testing.assert_array_equal(a["color"], b["color"])
     assert not np.array_equal(a["color"], c["color"])
     assert not np.array_equal(a["color"], r["color"]), "reference role must not reuse input seeds"
-    # the noise of two seeds is independent: correlation of residuals is small
-    ref = render("test:glossy", spp=256, seed=1, role=1)["color"]
-    ra, rc = (a["color"] - ref).ravel(), (c["color"] - ref).ravel()
-    assert abs(np.corrcoef(ra, rc)[0, 1]) < 0.3
+    # the noise of two seeds is independent: correlation of residuals is small (on a scene
+    # without heavy-tailed highlights, so the reference's own noise is negligible)
+    # and over the pixels that do not see the light itself, whose few partly covered pixels
+    # would dominate a correlation coefficient)
+    reference = render("test:diffuse_box", spp=1024, seed=1, role=1)
+    ref, lit = reference["color"], reference["specular"].max(-1) > 0
+    a, c = render("test:diffuse_box", spp=4, seed=5), render("test:diffuse_box", spp=4, seed=6)
+    ra, rc = (a["color"] - ref)[~lit].ravel(), (c["color"] - ref)[~lit].ravel()
+    assert ra.size > 2000
+    assert abs(np.corrcoef(ra, rc)[0, 1]) < 0.15
+    # the same scene rendered twice with one seed gives identical residuals: the check can fail
+    assert np.corrcoef(ra, (render("test:diffuse_box", spp=4, seed=5)["color"] - ref)[~lit].ravel())[0, 1] > 0.999
 
 
 def test_features_of_first_hit(render):

@@ -1,0 +1,314 @@
+"""kpcn.denoise: tiled == untiled, skipping what a scene does not need, weights loading, EXR output, CLI."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from kpcn import denoise as dn
+from kpcn.features import INPUT_LAYERS, frame_to_tensors, make_features
+from kpcn.io import Frame, MissingLayerError, read_exr, write_exr
+from kpcn.models import create_model
+
+# conv radius 2 (5x5), k = 5: receptive radius 4, halo 5
+SMALL = dict(layers=2, width=8, conv_size=5, kernel_size=5, out_init_gain=1.0)
+# k = 11 > an 8x8 frame
+WIDE_K = dict(layers=2, width=8, conv_size=5, kernel_size=11, out_init_gain=1.0)
+
+
+def _model(name="kpcn", seed=0, **cfg):
+    torch.manual_seed(seed)
+    return create_model(name, **(cfg or SMALL)).eval()
+
+
+def _copy(frame: Frame, **changes) -> Frame:
+    layers = {k: v.copy() for k, v in frame.layers.items()}
+    layers.update(changes)
+    return Frame(layers, dict(frame.meta))
+
+
+def _close(a, b, rtol=1e-5):
+    scale = max(float(np.abs(b).max()), 1e-6)
+    np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * scale)
+
+
+def _direct(model, frame):
+    """The model run untiled on make_features of the whole frame (no denoise.py code involved)."""
+    f = make_features(frame_to_tensors(frame))
+    with torch.no_grad():
+        return model(f.x_diffuse, f.x_specular, f.albedo)["color"][0].permute(1, 2, 0).numpy()
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def test_branch_features_equal_make_features(render):
+    frame = render("test:glossy", 4, 1, resolution=(40, 30))
+    buf = frame_to_tensors(frame)
+    ref = make_features(buf)
+    got = dn.branch_features(buf)
+    assert torch.equal(got["diffuse"], ref.x_diffuse)
+    assert torch.equal(got["specular"], ref.x_specular)
+    assert torch.equal(got["albedo"], ref.albedo)
+    # one branch: only that branch's buffers are needed and its tensor is the same
+    only = {k: v for k, v in buf.items() if not k.startswith("specular")}
+    d = dn.branch_features(only, branches=("diffuse",))
+    assert set(d) == {"albedo", "diffuse"} and torch.equal(d["diffuse"], ref.x_diffuse)
+    # the whole frame's depth scale on a crop gives the whole frame's features of that crop
+    scale = float(frame["depth"].max())
+    crop = {k: v[..., 5:20, 7:30] for k, v in buf.items()}
+    c = dn.branch_features(crop, scale)
+    torch.testing.assert_close(c["diffuse"][..., :-1, :-1], ref.x_diffuse[..., 5:19, 7:29], rtol=0, atol=0)
+
+
+def test_plan_tiles_cover_the_frame_once():
+    for h, w, t, halo in [(50, 70, 24, 5), (8, 8, 24, 6), (8, 8, 3, 6), (33, 17, 16, 0)]:
+        cover = np.zeros((h, w), int)
+        for tile in dn.plan_tiles(h, w, t, halo):
+            cover[tile.interior] += 1
+            assert tile.cy0 == max(0, tile.y0 - halo) and tile.cx1 == min(w, tile.x1 + halo)
+        assert (cover == 1).all()
+    assert len(list(dn.plan_tiles(50, 70, None, 5))) == 1
+
+
+# ----------------------------------------------------------------------------- tiling
+
+
+@pytest.mark.parametrize(
+    "name, cfg, res, tile",
+    [
+        ("kpcn", SMALL, (70, 50), 24),  # non-multiple sizes: 3 x 3 tiles with remainders
+        ("kpcn", SMALL, (33, 17), 16),
+        ("kpcn", SMALL, (20, 12), 64),  # smaller than one tile
+        ("kpcn", WIDE_K, (8, 8), 3),  # smaller than the kernel, tiles smaller than the halo
+        ("kpcn", WIDE_K, (8, 8), 256),
+        ("dpcn", SMALL, (70, 50), 24),
+    ],
+)
+def test_tiled_equals_untiled(render, name, cfg, res, tile):
+    frame = render("test:glossy", 4, 1, resolution=res)
+    model = _model(name, **cfg)
+    full = dn.denoise(frame, model, tile=None, skip=False)
+    tiled = dn.denoise_result(frame, model, tile=tile, skip=False)
+    assert tiled.color.shape == (res[1], res[0], 3) and tiled.color.dtype == np.float32
+    _close(tiled.color, full)
+    _close(full, _direct(model, frame))  # untiled denoise == the model on make_features
+    n_tiles = -(-res[0] // tile) * -(-res[1] // tile)
+    assert tiled.stats.tiles == tiled.stats.tiles_run == n_tiles
+    # skipping (per-tile zero branches, KPCN only) does not change a tiled KPCN result
+    if name == "kpcn":
+        np.testing.assert_array_equal(dn.denoise(frame, model, tile=tile), tiled.color)
+
+
+# ----------------------------------------------------------------------------- skipping
+
+
+class _Counter:
+    def __init__(self, module, monkeypatch):
+        self.calls = 0
+        orig = module.forward
+
+        def wrapped(*a, **k):
+            self.calls += 1
+            return orig(*a, **k)
+
+        monkeypatch.setattr(module, "forward", wrapped)
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn"])
+def test_zero_specular_branch_is_not_run(render, monkeypatch, name):
+    src = render("test:diffuse_box", 4, 2, resolution=(48, 40))
+    z = np.zeros_like(src["specular"])
+    frame = _copy(src, specular=z, specularVariance=np.zeros_like(src["specularVariance"]),
+                  color=src["diffuse"].copy(), colorVariance=src["diffuseVariance"].copy())
+    model = _model(name)
+    # the specular features are never built either
+    built = []
+    orig_bf = dn.branch_features
+    monkeypatch.setattr(dn, "branch_features", lambda b, s, br: built.append(tuple(br)) or orig_bf(b, s, br))
+    spec = _Counter(model.specular, monkeypatch)
+    diff = _Counter(model.diffuse, monkeypatch)
+    res = dn.denoise_result(frame, model, tile=16)
+    assert spec.calls == 0 and diff.calls == res.stats.tiles == 9
+    assert set(built) == {("diffuse",)}
+    assert res.stats.branches_skipped == ("specular",)
+    assert res.stats.branch_tiles_skipped == {"diffuse": 0, "specular": 9}
+    full = dn.denoise(frame, model, tile=16, skip=False)
+    assert spec.calls == 9
+    if name == "kpcn":
+        # a KPCN of an all-zero branch is exactly zero: skipping is exact
+        np.testing.assert_array_equal(res.color, full)
+        _close(res.color, _direct(model, frame))
+    else:
+        # a DPCN adds a residual even to a zero input; skipping sets that component to 0
+        f = make_features(frame_to_tensors(frame))
+        with torch.no_grad():
+            want = model(f.x_diffuse, None, f.albedo)["color"][0].permute(1, 2, 0).numpy()
+        _close(res.color, want)
+
+
+def test_kpcn_skips_specular_on_tiles_without_it(render, monkeypatch):
+    # the light is the only specular thing in the box: most tiles do not need the specular branch
+    frame = render("test:diffuse_box", 4, 3, resolution=(64, 64))
+    assert frame["specular"].max() > 0
+    model = _model("kpcn")
+    res = dn.denoise_result(frame, model, tile=16)
+    s = res.stats
+    assert s.branches_skipped == () and 0 < s.branch_tiles_run["specular"] < s.tiles
+    assert s.branch_tiles_skipped["specular"] == s.tiles - s.branch_tiles_run["specular"]
+    np.testing.assert_array_equal(res.color, dn.denoise(frame, model, tile=16, skip=False))
+    _close(res.color, _direct(model, frame))
+
+
+def test_no_hit_tiles_are_passed_through(render, monkeypatch):
+    frame = render("test:no_hit", 4, 1, resolution=(40, 36))
+    assert frame["depth"].max() == 0
+    model = _model("kpcn")
+
+    def boom(*a, **k):
+        raise AssertionError("the network must not run on a no-hit, converged frame")
+
+    monkeypatch.setattr(model, "forward", boom)
+    res = dn.denoise_result(frame, model, tile=16)
+    np.testing.assert_array_equal(res.color, frame["color"])
+    assert res.stats.tiles_passed_through == res.stats.tiles == 9 and res.stats.tiles_run == 0
+    assert "diffuse" in res.stats.branches_skipped
+
+
+def test_noisy_no_hit_tiles_are_denoised(render):
+    # no geometry but a noisy colour: not converged, so the network runs
+    frame = render("test:no_hit", 4, 1, resolution=(24, 24))
+    rng = np.random.default_rng(0)
+    noisy = _copy(frame)
+    noisy.layers["specular"] = frame["specular"] * rng.uniform(0.5, 1.5, frame["specular"].shape).astype(np.float32)
+    noisy.layers["color"] = noisy["specular"].copy()
+    noisy.layers["colorVariance"] = np.full_like(frame["colorVariance"], 0.01)
+    noisy.layers["specularVariance"] = np.full_like(frame["specularVariance"], 0.01)
+    res = dn.denoise_result(noisy, _model("kpcn"), tile=16)
+    assert res.stats.tiles_passed_through == 0 and res.stats.tiles_run == res.stats.tiles
+
+
+# ----------------------------------------------------------------------------- files and weights
+
+
+def _checkpoint(tmp_path, name="kpcn", cfg=SMALL, fname="model.pt"):
+    from kpcn.config import load_config
+    from kpcn.train import save_checkpoint
+
+    extra = {k: v for k, v in cfg.items() if k not in ("layers", "width", "conv_size", "kernel_size")}
+    overrides = [f"model.name={name}"] + [f"model.{k}={cfg[k]}" for k in ("layers", "width", "conv_size", "kernel_size")]
+    conf = load_config(None, overrides, "t")
+    conf.model.extra = extra
+    model = _model(name, **cfg)
+    path = tmp_path / fname
+    save_checkpoint(path, model, None, 7, conf)
+    return path, model
+
+
+def test_load_model_from_checkpoint_and_cache(tmp_path, render):
+    path, model = _checkpoint(tmp_path)
+    a = dn.load_model(path, device="cpu")
+    assert a is dn.load_model(str(path), device="cpu")  # cached
+    for k, v in model.state_dict().items():
+        assert torch.equal(a.state_dict()[k], v)
+    frame = render("test:glossy", 4, 1, resolution=(30, 20))
+    np.testing.assert_array_equal(dn.denoise(frame, str(path), tile=16), dn.denoise(frame, model, tile=16))
+
+
+def test_load_model_errors(tmp_path):
+    if not dn.DEFAULT_WEIGHTS.exists():
+        with pytest.raises(dn.DefaultWeightsMissing, match="kpcn.train"):
+            dn.load_model(None)
+    else:
+        assert dn.load_model(None, device="cpu").receptive_radius > 0
+    if not (dn.WEIGHTS_DIR / "dpcn.pt").exists():
+        with pytest.raises(dn.DefaultWeightsMissing, match="no shipped weights for model 'dpcn'"):
+            dn.load_model("dpcn")
+    with pytest.raises(FileNotFoundError, match="neither a checkpoint file nor a registered model"):
+        dn.load_model(str(tmp_path / "nope.pt"))
+    bad = tmp_path / "bad.pt"
+    torch.save({"weights": {}}, bad)
+    with pytest.raises(ValueError, match="missing key"):
+        dn.load_model(bad)
+
+
+def test_exr_in_exr_out(tmp_path, render):
+    import OpenEXR
+
+    frame = render("test:glossy", 4, 1, resolution=(30, 20))
+    src = tmp_path / "noisy.exr"
+    write_exr(src, frame.layers, frame.meta)
+    model = _model("kpcn")
+    out = tmp_path / "out" / "clean.exr"
+    color = dn.denoise(src, model, out_path=out, tile=16)
+    back = read_exr(out)
+    assert set(back.layers) == {"color", "albedo", "normal", "depth"}
+    np.testing.assert_array_equal(back["color"], color)
+    np.testing.assert_array_equal(back["albedo"], frame["albedo"])
+    with OpenEXR.File(str(out), separate_channels=True) as f:
+        header = dict(f.header())
+        assert set(f.channels()) >= {"R", "G", "B", "albedo.R", "normal.G", "depth.Y"}
+        assert header["source"].endswith("noisy.exr") and header["denoiser"].startswith("kpcn")
+        assert header["denoiseSeconds"] >= 0 and header["spp"] == 4
+
+
+def test_missing_layers_are_refused(tmp_path, render):
+    frame = render("test:glossy", 4, 1, resolution=(16, 16))
+    layers = {k: v for k, v in frame.layers.items() if k not in ("specularVariance", "normal")}
+    path = tmp_path / "partial.exr"
+    write_exr(path, layers)
+    with pytest.raises(MissingLayerError, match="normal, specularVariance; found: .*albedo"):
+        dn.denoise(path, _model("kpcn"))
+
+
+def test_in_memory_frame_is_sanitised_not_modified(render):
+    frame = _copy(render("test:glossy", 4, 1, resolution=(16, 16)))
+    frame.layers["diffuse"][3, 4, 0] = np.nan
+    frame.layers["specular"][5, 5, 1] = np.inf
+    with pytest.warns(RuntimeWarning, match="diffuse: 1, specular: 1"):
+        res = dn.denoise_result(frame, _model("kpcn"))
+    assert np.isnan(frame["diffuse"][3, 4, 0])  # the caller's arrays are untouched
+    assert np.isfinite(res.color).all() and (res.color >= 0).all()
+    assert res.stats.nonfinite == {"diffuse": 1, "specular": 1}
+
+
+def test_cli_continues_after_a_bad_file(tmp_path, render, capsys):
+    path, _ = _checkpoint(tmp_path)
+    frame = render("test:glossy", 4, 1, resolution=(20, 16))
+    good = tmp_path / "good.exr"
+    write_exr(good, frame.layers, frame.meta)
+    partial = tmp_path / "partial.exr"
+    write_exr(partial, {"color": frame["color"]})
+    garbage = tmp_path / "garbage.exr"
+    garbage.write_bytes(b"not an exr at all")
+    out_dir = tmp_path / "out"
+    rc = dn.main([str(garbage), str(good), str(partial), "--out-dir", str(out_dir), "--model", str(path),
+                  "--tile", "8", "--device", "cpu"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert (out_dir / "good_denoised.exr").exists()
+    assert not (out_dir / "garbage_denoised.exr").exists()
+    assert "good.exr ->" in cap.out and " s (" in cap.out
+    assert "2 of 3 file(s) failed" in cap.err and "partial.exr" in cap.err and "missing layer" in cap.err
+    assert "cannot read as OpenEXR" in cap.err
+    with pytest.raises(SystemExit):
+        dn.main([str(good), str(partial), "-o", str(tmp_path / "x.exr")])
+    assert dn.main([str(good), "--model", str(tmp_path / "nope.pt")]) == 2
+    assert dn.main([str(good), "-o", str(tmp_path / "one.exr"), "--model", str(path), "--device", "cpu"]) == 0
+    assert read_exr(tmp_path / "one.exr")["color"].shape == (16, 20, 3)
+
+
+def test_half_on_cpu_warns_and_runs_float32(render):
+    frame = render("test:glossy", 4, 1, resolution=(16, 16))
+    model = _model("kpcn")
+    with pytest.warns(RuntimeWarning, match="only used on CUDA"):
+        out = dn.denoise(frame, model, device="cpu", half=True)
+    np.testing.assert_array_equal(out, dn.denoise(frame, model, device="cpu"))
+
+
+def test_bench_denoise_skip_smoke(render, capsys):
+    from kpcn.bench import SUBCOMMANDS
+
+    rc = SUBCOMMANDS["denoise"](["--skip", "--sizes", "24", "--tile", "8", "--repeats", "1", "--scenes", "test:no_hit"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "test:no_hit" in out and "tiles passed through" in out
