@@ -14,6 +14,8 @@ from kpcn.models import create_model
 SMALL = dict(layers=2, width=8, conv_size=5, kernel_size=5, out_init_gain=1.0)
 # k = 11 > an 8x8 frame
 WIDE_K = dict(layers=2, width=8, conv_size=5, kernel_size=11, out_init_gain=1.0)
+# dilated 3x3 convs (as configs/small.yaml): receptive radius (1 + 3) * 1 = 4
+DILATED = dict(layers=2, width=8, conv_size=3, kernel_size=5, dilations=[1, 3], out_init_gain=1.0)
 
 
 def _model(name="kpcn", seed=0, **cfg):
@@ -83,6 +85,7 @@ def test_plan_tiles_cover_the_frame_once():
         ("kpcn", WIDE_K, (8, 8), 3),  # smaller than the kernel, tiles smaller than the halo
         ("kpcn", WIDE_K, (8, 8), 256),
         ("dpcn", SMALL, (70, 50), 24),
+        ("kpcn", DILATED, (70, 50), 24),
     ],
 )
 def test_tiled_equals_untiled(render, name, cfg, res, tile):

@@ -306,14 +306,15 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
         if cfg.train.grad_clip:
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.train.grad_clip)
         optimizer.step()
-        losses.append(float(loss.detach()))
+        loss_value = float(loss.detach())
+        losses.append(loss_value)
         n_patches += batch["x_diffuse"].shape[0] * d.world
         done = step + 1
         bar.update(1)
         if d.main and done % cfg.train.log_every == 0:
             rate = n_patches / (time.perf_counter() - t0)
             bar.set_postfix(stage=stage, loss=f"{np.mean(losses[-cfg.train.log_every:]):.4g}", patches_s=f"{rate:.1f}")
-            writer.add_scalar(f"loss/stage{stage}", float(loss), done)
+            writer.add_scalar(f"loss/stage{stage}", loss_value, done)
             writer.add_scalar("throughput/patches_per_s", rate, done)
         if done % cfg.train.ckpt_every == 0 or done == total:
             checkpoint(done)
