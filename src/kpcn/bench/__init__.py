@@ -1,0 +1,49 @@
+"""Benchmarks: ``python -m kpcn.bench <subcommand> [options]``.
+
+Each subcommand prints figures and compares against a baseline measured in the
+same run (a ratio):
+
+* ``render``  — the one-pass split integrator against Mitsuba's ``path`` (:mod:`.render`)
+* ``kernel``  — the kernel-apply op against ``F.unfold`` (:mod:`.kernel`)
+* ``train``   — training throughput of configs, patches/s (:mod:`.train`)
+* ``denoise`` — whole-frame denoising against Intel OIDN; ``--skip`` the time saved
+  by leaving out what a scene does not need (:mod:`.denoise`)
+
+Subcommands live in :data:`SUBCOMMANDS`, a dict mapping the name to a function
+``fn(argv: list[str]) -> int`` that parses its own options.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+
+def _lazy(module: str, func: str) -> Callable[[list[str]], int]:
+    def run(argv: list[str]) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{module}"), func)(argv)
+
+    return run
+
+
+SUBCOMMANDS: dict[str, Callable[[list[str]], int]] = {
+    "render": _lazy("render", "bench_render"),
+    "kernel": _lazy("kernel", "bench_kernel"),
+    "train": _lazy("train", "bench_train"),
+    "denoise": _lazy("denoise", "bench_denoise"),
+}
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    names = ", ".join(sorted(SUBCOMMANDS))
+    if not argv or argv[0] in ("-h", "--help"):
+        print(f"usage: python -m kpcn.bench {{{names}}} [options]\n\nsubcommands: {names}\n"
+              "run 'python -m kpcn.bench <subcommand> --help' for its options")
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"python -m kpcn.bench: unknown subcommand {name!r}; known: {names}", file=sys.stderr)
+        return 2
+    return SUBCOMMANDS[name](rest)
+

@@ -1,0 +1,416 @@
+"""``python -m kpcn.bench denoise``: whole-frame denoising time and memory against OIDN.
+
+``denoise``: whole-frame :func:`kpcn.denoise.denoise` (tiled) for model configs
+(``configs/small.yaml``, ``configs/paper.yaml``; random-init weights) against
+Intel OIDN (``pyoidn``) on the same frames rendered with Mitsuba at each size,
+with kpcn/OIDN ratios from the same run. Memory is measured as for ``kernel``
+(fresh process per configuration, after reading the frame, building the model
+and a 64x64 warm-up). ``denoise --skip`` times the same model with and without
+skipping what a scene does not need (see :mod:`kpcn.denoise`).
+"""
+
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import statistics
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Callable
+
+__all__ = ["SUBCOMMANDS", "main", "bench_kernel", "bench_denoise"]
+
+from .common import _fmt_mb, _fmt_s, _mem_available_bytes, _proc_status_kb, _ratio, _reset_peak_rss
+
+
+# --------------------------------------------------------------------------- denoise
+#
+# ``denoise``: whole-frame denoising with kpcn.denoise (tiled) for model configs
+# (configs/<name>.yaml, random-init weights: the time does not depend on the
+# values) against Intel Open Image Denoise (pyoidn) on the same rendered frames.
+# Memory method: as for ``kernel`` -- every (model, size) runs in a fresh
+# spawned process that reads the frame, builds the model and warms up on a
+# 64x64 crop, then resets the peak-RSS counter and denoises once; reported
+# memory is peak RSS during that call minus RSS before it (what denoising needed
+# on top of the loaded frame and the model's weights, the output included).
+# ``denoise --skip``: the same model with and without leaving out what a scene
+# does not need (zero branches, zero KPCN tiles, no-hit converged tiles), timed
+# alternately in one process.
+
+_DENOISE_FALLBACK_MODELS = {  # used when configs/<name>.yaml cannot be found
+    "small": {"name": "kpcn", "layers": 5, "width": 32, "conv_size": 5, "kernel_size": 11},
+    "paper": {"name": "kpcn", "layers": 9, "width": 100, "conv_size": 5, "kernel_size": 21},
+}
+
+
+def _denoise_model_spec(name: str) -> tuple[str, dict, str]:
+    """``(registry name, model kwargs, origin)`` for a config name (``small``), a YAML path, or
+    ``registry:key=value,...`` (e.g. ``kpcn:layers=5,width=32,conv_size=5,kernel_size=11``)."""
+    from pathlib import Path
+
+    if ":" in name:
+        import yaml
+
+        reg, _, rest = name.partition(":")
+        kw = {}
+        for item in filter(None, rest.split(",")):
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise ValueError(f"model spec {name!r}: expected key=value, got {item!r}")
+            kw[key.strip()] = yaml.safe_load(value)
+        return reg, kw, "command line"
+    if name.endswith((".yaml", ".yml")):
+        candidates = [Path(name)]
+    else:
+        root = Path(__file__).resolve().parents[2]
+        candidates = [Path("configs") / f"{name}.yaml", root / "configs" / f"{name}.yaml"]
+    for path in candidates:
+        if path.is_file():
+            from ..config import load_config
+            from ..train import model_kwargs
+
+            cfg = load_config(path)
+            return cfg.model.name, model_kwargs(cfg), str(path)
+    if name in _DENOISE_FALLBACK_MODELS:
+        spec = dict(_DENOISE_FALLBACK_MODELS[name])
+        return spec.pop("name"), spec, "built-in fallback"
+    raise ValueError(f"unknown model config {name!r}: no configs/{name}.yaml and not one of {sorted(_DENOISE_FALLBACK_MODELS)}")
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    """``"256"`` -> (256, 256); ``"1920x1080"`` -> (1920, 1080), as (width, height)."""
+    parts = text.lower().split("x")
+    try:
+        if len(parts) == 1:
+            return int(parts[0]), int(parts[0])
+        if len(parts) == 2:
+            return int(parts[0]), int(parts[1])
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"size must be N or WxH, got {text!r}")
+
+
+def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int) -> dict:
+    import gc
+    import resource
+
+    import numpy as np
+    import torch
+
+    from kpcn.io import read_exr
+
+    if threads:
+        torch.set_num_threads(threads)
+    frame = read_exr(path)
+    h, w = frame.shape
+    extra: dict = {}
+    if impl == "oidn":
+        import pyoidn
+
+        if threads:
+            extra["oidn_threads"] = _oidn_set_threads(threads)
+        color = np.ascontiguousarray(np.maximum(frame["color"], 0.0))
+        albedo = np.ascontiguousarray(np.clip(frame["albedo"], 0.0, 1.0))  # OIDN wants albedo in [0, 1]
+        normal = np.ascontiguousarray(frame["normal"])
+
+        def run():
+            return pyoidn.denoise(color, albedo, normal, hdr=True, quality="high")
+
+        s = (slice(0, min(h, 64)), slice(0, min(w, 64)))
+        pyoidn.denoise(color[s].copy(), albedo[s].copy(), normal[s].copy(), hdr=True, quality="high")
+    else:
+        from kpcn.denoise import denoise_result
+        from kpcn.models import create_model
+
+        torch.manual_seed(0)
+        model = create_model(model_name, **model_kw).eval()
+
+        def run():
+            r = denoise_result(frame, model, tile=tile, device="cpu")
+            extra.update(stats=r.stats.summary(), halo=r.stats.halo, tiles=r.stats.tiles)
+            return r.color
+
+        denoise_result(frame.crop(0, min(h, 64), 0, min(w, 64)), model, tile=tile, device="cpu")
+    gc.collect()
+    rss_before_kb = _proc_status_kb("VmRSS")
+    reset_ok = _reset_peak_rss()
+    c0, t0 = time.process_time(), time.perf_counter()
+    out = run()
+    first_s = time.perf_counter() - t0
+    cpu = [time.process_time() - c0]
+    if reset_ok and _proc_status_kb("VmHWM") is not None:
+        peak_kb = _proc_status_kb("VmHWM")
+        method = "VmHWM (reset via /proc/self/clear_refs) - VmRSS before"
+    else:
+        peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        method = "ru_maxrss - VmRSS before (may over-report)"
+    del out
+    times = [first_s]
+    for _ in range(max(0, repeats - 1)):
+        c0, t0 = time.process_time(), time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return {
+        "status": "ok",
+        "cpu_s": statistics.median(cpu),
+        "first_s": first_s,
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "times_s": times,
+        "mem_mb": (peak_kb - (rss_before_kb or 0)) / 1024.0,
+        "mem_method": method,
+        "threads": torch.get_num_threads(),
+        **extra,
+    }
+
+
+def _loadavg() -> str:
+    try:
+        return ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def _oidn_set_threads(n: int) -> str:
+    """Give pyoidn's shared CPU device ``n`` threads (OIDN's ``numThreads``) before its first use.
+
+    ``pyoidn.denoise`` has no thread option, so this creates the device it would
+    create, sets ``numThreads`` and registers it in pyoidn's resource cache (a
+    private structure: if that changes, OIDN keeps its default and this says so).
+    """
+    try:
+        import importlib
+
+        mod = importlib.import_module("pyoidn.denoise")
+        from pyoidn.device import Device
+
+        dev = Device()
+        dev.set_int("numThreads", int(n))
+        dev.commit()
+        mod._denoiser._resources[("cpu", 0, 0)] = mod._DeviceResources(dev, None)
+        return str(n)
+    except Exception as exc:  # pragma: no cover - depends on pyoidn internals
+        return f"default (could not set: {exc})"
+
+
+def _denoise_worker(conn, *args) -> None:
+    try:
+        result = _denoise_measure(*args)
+    except BaseException as exc:  # report, do not hang the parent
+        result = {"status": f"failed: {type(exc).__name__}: {exc}"}
+    conn.send(result)
+    conn.close()
+
+
+def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout) -> dict:
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_denoise_worker, args=(send, impl, path, model_name, model_kw, tile, threads, repeats))
+    proc.start()
+    send.close()
+    result = None
+    try:
+        if recv.poll(timeout):
+            result = recv.recv()
+    except EOFError:  # the worker died without answering
+        proc.join(5)
+        result = None
+    if result is None:
+        alive = proc.is_alive()
+        if alive:
+            proc.terminate()  # the worker this call started
+        proc.join(10)
+        result = {"status": f"timeout (> {timeout:.0f} s)" if alive else f"failed (worker died, exit code {proc.exitcode}: out of memory?)"}
+    else:
+        proc.join(10)
+    return result
+
+
+def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
+    from kpcn.render import render_frame
+    from kpcn.io import write_exr
+
+    t0 = time.perf_counter()
+    frame = render_frame(scene, spp=spp, seed=seed, resolution=size)
+    write_exr(path, frame.layers, frame.meta)
+    return time.perf_counter() - t0
+
+
+def _bench_denoise_skip(args) -> int:
+    import numpy as np
+    import torch
+
+    from kpcn.denoise import denoise_result
+    from kpcn.io import Frame
+    from kpcn.models import create_model
+    from kpcn.render import render_frame
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    name = args.models[0]
+    model_name, kw, origin = _denoise_model_spec(name)
+    torch.manual_seed(0)
+    model = create_model(model_name, **kw).eval()
+    w, h = args.sizes[0]
+    tile = args.tile if args.tile_given else 64
+    print(f"denoise --skip: model {name} ({model_name} {kw}, from {origin}, random init), {w}x{h}, tile {tile}, "
+          f"{args.spp} spp, torch {torch.__version__}, {torch.get_num_threads()} threads; "
+          f"full (skip=False) and skip (skip=True) timed alternately, {args.repeats} repeats, median seconds", flush=True)
+    rows = []
+    for scene in args.scenes:
+        variants = []
+        frame = render_frame(scene, spp=args.spp, seed=args.seed, resolution=(w, h))
+        variants.append((scene, frame))
+        if args.zero_specular:
+            layers = {k: v.copy() for k, v in frame.layers.items()}
+            layers["specular"][:] = 0.0
+            layers["specularVariance"][:] = 0.0
+            layers["color"] = layers["diffuse"].copy()
+            if "colorVariance" in layers:
+                layers["colorVariance"] = layers["diffuseVariance"].copy()
+            variants.append((f"{scene} (specular zeroed)", Frame(layers, dict(frame.meta))))
+        for label, fr in variants:
+            denoise_result(fr, model, tile=tile, device="cpu", skip=False)  # warm up
+            denoise_result(fr, model, tile=tile, device="cpu", skip=True)
+            t_full, t_skip, c_full, c_skip = [], [], [], []
+            for _ in range(args.repeats):
+                c0, t0 = time.process_time(), time.perf_counter()
+                full = denoise_result(fr, model, tile=tile, device="cpu", skip=False)
+                t_full.append(time.perf_counter() - t0)
+                c_full.append(time.process_time() - c0)
+                c0, t0 = time.process_time(), time.perf_counter()
+                sk = denoise_result(fr, model, tile=tile, device="cpu", skip=True)
+                t_skip.append(time.perf_counter() - t0)
+                c_skip.append(time.process_time() - c0)
+            scale = max(float(np.abs(full.color).max()), 1e-12)
+            diff = float(np.abs(full.color - sk.color).max()) / scale
+            med = statistics.median
+            rows.append((label, med(t_full), med(t_skip), med(c_full), med(c_skip), sk.stats, diff))
+            print(f"  {label}: full {med(t_full):.3f} s, skip {med(t_skip):.3f} s", file=sys.stderr, flush=True)
+    print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
+    print(f"\n{'scene':<34} {'full s':>7} {'skip s':>7} {'ratio':>7} {'full cpu':>8} {'skip cpu':>8} {'ratio':>7} "
+          f"{'max|diff|/max':>13}  what was skipped")
+    for label, tf, ts, cf, cs, st, diff in rows:
+        what = []
+        if st.branches_skipped:
+            what.append(f"branch {'+'.join(st.branches_skipped)} (whole frame)")
+        for b in ("diffuse", "specular"):
+            if b not in st.branches_skipped and st.branch_tiles_skipped[b]:
+                what.append(f"{b} on {st.branch_tiles_skipped[b]}/{st.tiles} tiles")
+        if st.tiles_passed_through:
+            what.append(f"{st.tiles_passed_through}/{st.tiles} tiles passed through")
+        if st.tiles_zero:
+            what.append(f"{st.tiles_zero}/{st.tiles} zero tiles")
+        print(f"{label:<34} {tf:>7.3f} {ts:>7.3f} {tf / max(ts, 1e-9):>6.2f}x {cf:>8.3f} {cs:>8.3f} {cf / max(cs, 1e-9):>6.2f}x "
+              f"{diff:>13.2e}  {'; '.join(what) or 'nothing'}")
+    return 0
+
+
+def bench_denoise(argv: list[str]) -> int:
+    """``python -m kpcn.bench denoise``: kpcn.denoise (small / paper configs) vs OIDN; ``--skip``: time saved by skipping."""
+    import tempfile
+
+    p = argparse.ArgumentParser(
+        prog="python -m kpcn.bench denoise",
+        description="Seconds and peak memory of kpcn.denoise for model configs (random-init weights) against "
+        "Intel OIDN on the same rendered frames; each configuration in a fresh subprocess (memory = peak RSS "
+        "during the call minus RSS before it). With --skip: the time saved by leaving out zero branches, zero "
+        "tiles and no-hit tiles (full vs skip in the same process).",
+    )
+    p.add_argument("--sizes", type=_parse_size, nargs="+", default=None,
+                   help="frame sizes, N or WxH (default: 256 1024 1920x1080; --skip: 256)")
+    p.add_argument("--models", nargs="+", default=["small", "paper"],
+                   help="configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
+                   "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); default: small paper; --skip: the first")
+    p.add_argument("--no-oidn", action="store_true", help="leave out Intel OIDN")
+    p.add_argument("--tile", type=int, default=None, help="kpcn tile size (default 256; --skip: 64)")
+    p.add_argument("--scene", default="random:3", help="scene to render (default random:3)")
+    p.add_argument("--spp", type=int, default=4, help="samples per pixel of the rendered frames (default 4)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--repeats", type=int, default=None, help="runs per configuration; the first is the measured-memory one (default 1; --skip: 3)")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds per configuration before it is stopped (default 300)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--frames-dir", default=None, help="keep the rendered frames here (default: a temporary folder)")
+    p.add_argument("--json", default=None, metavar="PATH", help="also write the raw results as JSON")
+    p.add_argument("--skip", action="store_true", help="measure the time saved by skipping (see above)")
+    p.add_argument("--scenes", nargs="+", default=["test:diffuse_box", "test:glass", "test:envmap_open", "test:no_hit"],
+                   help="--skip: scenes to render (default: test:diffuse_box test:glass test:envmap_open test:no_hit)")
+    p.add_argument("--zero-specular", action="store_true",
+                   help="--skip: also run each scene with its specular buffers zeroed (a synthetic no-specular frame)")
+    args = p.parse_args(argv)
+    args.tile_given = args.tile is not None
+    if args.skip:
+        args.sizes = args.sizes or [(256, 256)]
+        args.repeats = args.repeats or 3
+        return _bench_denoise_skip(args)
+    args.repeats = args.repeats or 1
+    args.sizes = args.sizes or [(256, 256), (1024, 1024), (1920, 1080)]
+    tile = args.tile if args.tile_given else 256
+    specs = {name: _denoise_model_spec(name) for name in args.models}
+
+    tmp = None
+    frames_dir = args.frames_dir
+    if frames_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="kpcn-bench-denoise-")
+        frames_dir = tmp.name
+    os.makedirs(frames_dir, exist_ok=True)
+    results: list[dict] = []
+    try:
+        for w, h in args.sizes:
+            path = os.path.join(frames_dir, f"{args.scene.replace(':', '_')}_{w}x{h}_{args.spp}spp.exr")
+            if not os.path.exists(path):
+                print(f"rendering {args.scene} {w}x{h} at {args.spp} spp ...", file=sys.stderr, flush=True)
+                secs = _render_bench_frame(args.scene, (w, h), args.spp, args.seed, path)
+                print(f"  rendered in {secs:.1f} s", file=sys.stderr, flush=True)
+            jobs = [("kpcn", name) for name in args.models] + ([] if args.no_oidn else [("oidn", "oidn")])
+            for impl, name in jobs:
+                model_name, kw = (specs[name][0], specs[name][1]) if impl == "kpcn" else ("", {})
+                print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
+                t0 = time.perf_counter()
+                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout)
+                r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
+                print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
+                results.append(r)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+    ok = [r for r in results if r.get("status") == "ok"]
+    print(f"\ndenoise benchmark: scene {args.scene} at {args.spp} spp (rendered with Mitsuba at each size), kpcn tile {tile}, "
+          f"random-init weights, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
+    for name in args.models:
+        model_name, kw, origin = specs[name]
+        print(f"  {name}: {model_name} {kw} (from {origin})")
+    print(f"memory = peak RSS during one call minus RSS before it [{ok[0]['mem_method'] if ok else '?'}]; "
+          "time = median wall seconds (frame already in memory, model built); cpu = process CPU seconds "
+          "(less sensitive to other load on the machine, but it counts OpenMP spin-waiting)")
+    print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
+    mw = max([8] + [len(n) for n in args.models])
+    header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  notes"
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        t = f"{r['median_s']:.2f}" if r.get("status") == "ok" else "-"
+        m = f"{r['mem_mb']:.0f}" if r.get("status") == "ok" else "-"
+        c = f"{r['cpu_s']:.2f}" if r.get("status") == "ok" else "-"
+        note = r.get("stats", "") if r.get("status") == "ok" else r.get("status", "")
+        print(f"{r['size']:>10}  {r['model']:<{mw}}  {t:>9}  {c:>8}  {m:>8}  {note}")
+    if not args.no_oidn:
+        print("\nratios kpcn / oidn (same run):")
+        print(f"{'size':>10}  {'model':<{mw}}  {'time':>8}  {'memory':>8}")
+        by = {(r["size"], r["model"]): r for r in results}
+        for w, h in args.sizes:
+            o = by.get((f"{w}x{h}", "oidn"), {})
+            for name in args.models:
+                k = by.get((f"{w}x{h}", name), {})
+                print(f"{f'{w}x{h}':>10}  {name:<{mw}}  {_ratio(k, o, 'median_s'):>8}  {_ratio(k, o, 'mem_mb'):>8}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"args": {k: v for k, v in vars(args).items()}, "results": results}, f, indent=2, default=str)
+    return 0
+
+
