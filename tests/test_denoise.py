@@ -44,7 +44,7 @@ def _direct(model, frame):
 # ----------------------------------------------------------------------------- features
 
 
-def test_branch_features_equal_make_features(render):
+def test_branch_subsets_and_crops_match_full_features(render):
     frame = render("test:glossy", 4, 1, resolution=(40, 30))
     buf = frame_to_tensors(frame)
     ref = make_features(buf)

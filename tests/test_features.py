@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from kpcn.constants import EPS
-from kpcn.features import (N_FEATURES, frame_features, frame_to_tensors, gradients, make_features, make_targets,
-                           reconstruct)
+from kpcn.features import N_FEATURES, frame_features, frame_to_tensors, gradients, make_features, make_targets
+from kpcn.models import reconstruct
 
 
 def test_feature_channels_match_hand_computation(render):

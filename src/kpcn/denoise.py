@@ -74,16 +74,9 @@ import torch
 from torch import nn
 
 from .constants import EPS
-from .features import (
-    INPUT_LAYERS,
-    _mean_c,
-    _variance,
-    _variance_rgb,
-    depth_scale_of,
-    diffuse_color,
-    gradients,
-    specular_color,
-)
+from .features import BRANCH_LAYERS as _BRANCH_LAYERS
+from .features import BRANCHES, INPUT_LAYERS, branch_features, depth_scale_of
+from .features import SHARED_LAYERS as _SHARED_LAYERS
 from .io import ExrError, Frame, MissingLayerError, read_exr, sanitize_layers, write_exr
 
 __all__ = [
@@ -111,9 +104,6 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.pt"
 #: a no-hit tile is passed through when every pixel's standard error is at most this fraction of its colour
 PASSTHROUGH_REL_STD = 1e-3
 
-BRANCHES = ("diffuse", "specular")
-_SHARED_LAYERS = ("albedo", "normal", "depth", "albedoVariance", "normalVariance", "depthVariance")
-_BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
 _THREE_CHANNEL = ("diffuse", "specular", "albedo", "normal")
 
 _HOW_TO_GET_WEIGHTS = (
@@ -329,58 +319,6 @@ def _is_kpcn(model: nn.Module) -> bool:
 
 
 # ----------------------------------------------------------------------------- features
-
-
-def branch_features(
-    buffers: Mapping[str, torch.Tensor],
-    depth_scale: torch.Tensor | float | None = None,
-    branches=BRANCHES,
-) -> dict[str, torch.Tensor]:
-    """The 27-channel features of only the listed branches, plus the clamped albedo.
-
-    Gives exactly the tensors of :func:`kpcn.features.make_features` (same ops
-    on the same values; a test checks bit equality) but builds a branch's
-    channels only when it is listed, reads only the buffers those branches
-    need, and computes the shared normal/albedo/depth gradients once.
-
-    Args:
-        buffers: ``(B, C, H, W)`` tensors named as in :data:`INPUT_LAYERS`
-            (those of an unlisted branch may be absent).
-        depth_scale: depth normaliser; default the largest depth per image.
-        branches: subset of ``("diffuse", "specular")``.
-
-    Returns:
-        ``{"albedo": (B, 3, H, W), "diffuse": (B, 27, H, W)?, "specular": (B, 27, H, W)?}``.
-    """
-    branches = tuple(branches)
-    need = list(_SHARED_LAYERS) + [n for b in branches for n in _BRANCH_LAYERS[b]]
-    missing = [n for n in need if n not in buffers]
-    if missing:
-        raise KeyError(f"branch_features: missing buffers {missing}; got {sorted(buffers)}")
-    b = {k: torch.nan_to_num(buffers[k].float(), nan=0.0, posinf=0.0, neginf=0.0) for k in need}
-    albedo = b["albedo"].clamp_min(0.0)
-    depth = b["depth"][:, :1].clamp_min(0.0)
-    if depth_scale is None:
-        depth_scale = depth_scale_of(depth)
-    depth = depth / depth_scale
-    var_n = _variance(b["normalVariance"])
-    var_a = _variance(b["albedoVariance"])
-    var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
-    aux_gx, aux_gy = gradients(torch.cat([b["normal"], albedo, depth], dim=1))
-    out = {"albedo": albedo}
-    for name in branches:
-        if name == "diffuse":
-            color = diffuse_color(b["diffuse"], albedo)
-            var = _mean_c(_variance_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2)
-        elif name == "specular":
-            raw = b["specular"].clamp_min(0.0)
-            color = specular_color(raw)
-            var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + raw) ** 2)
-        else:
-            raise ValueError(f"branch_features: unknown branch {name!r}; expected one of {BRANCHES}")
-        gx, gy = gradients(color)
-        out[name] = torch.cat([color, var, gx, aux_gx, gy, aux_gy, var_n, var_a, var_d], dim=1)
-    return out
 
 
 # ----------------------------------------------------------------------------- tiles
@@ -713,6 +651,17 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {inp}: {msg}", file=sys.stderr)
         return 1
     return 0
+
+
+class _CallableModule(type(sys)):
+    """Lets ``kpcn.denoise("frame.exr")`` call :func:`denoise` while ``python -m
+    kpcn.denoise`` and ``from kpcn.denoise import ...`` keep working on the module."""
+
+    def __call__(self, *args, **kwargs):
+        return denoise(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 
 if __name__ == "__main__":

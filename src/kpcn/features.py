@@ -90,41 +90,75 @@ def specular_color(specular: torch.Tensor) -> torch.Tensor:
     return torch.log1p(specular.clamp_min(0.0))
 
 
-def _branch(color, color_var, normal, albedo, depth, var_n, var_a, var_d) -> torch.Tensor:
-    aux = torch.cat([color, normal, albedo, depth], dim=1)
-    gx, gy = gradients(aux)
-    return torch.cat([color, color_var, gx, gy, var_n, var_a, var_d], dim=1)
-
-
 @dataclass
 class Features:
-    """Network inputs for one batch; every tensor is ``(B, C, H, W)``."""
+    """Network inputs for one batch; every tensor is ``(B, C, H, W)``.
 
-    x_diffuse: torch.Tensor  # (B, 27, H, W)
-    x_specular: torch.Tensor  # (B, 27, H, W)
+    A branch left out (see :func:`make_features`) is ``None``.
+    """
+
+    x_diffuse: torch.Tensor | None  # (B, 27, H, W)
+    x_specular: torch.Tensor | None  # (B, 27, H, W)
     albedo: torch.Tensor  # (B, 3, H, W), clamped at 0: reconstruction multiplies by albedo + eps
 
     def as_dict(self) -> dict[str, torch.Tensor]:
         return {"x_diffuse": self.x_diffuse, "x_specular": self.x_specular, "albedo": self.albedo}
 
 
-def make_features(buffers: dict[str, torch.Tensor], depth_scale: torch.Tensor | float | None = None) -> Features:
-    """Compute the 27-channel features of both branches.
+BRANCHES = ("diffuse", "specular")
+SHARED_LAYERS = ("albedo", "normal", "depth", "albedoVariance", "normalVariance", "depthVariance")
+BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
+
+
+def make_features(
+    buffers: dict[str, torch.Tensor],
+    depth_scale: torch.Tensor | float | None = None,
+    branches=BRANCHES,
+) -> Features:
+    """Compute the 27-channel features of both branches (or only those in ``branches``).
 
     Args:
         buffers: ``(B, C, H, W)`` tensors named as :data:`INPUT_LAYERS`.
             Non-finite values are replaced by 0 (readers already count them).
         depth_scale: divide depth by this; default: the largest depth per image.
+        branches: the branches to build; the others are ``None`` and their
+            buffers need not be present.
 
     Returns:
         :class:`Features`.
     """
-    missing = [n for n in INPUT_LAYERS if n not in buffers]
+    out = branch_features(buffers, depth_scale, branches)
+    return Features(out.get("diffuse"), out.get("specular"), out["albedo"])
+
+
+def branch_features(
+    buffers: Mapping[str, torch.Tensor],
+    depth_scale: torch.Tensor | float | None = None,
+    branches=BRANCHES,
+) -> dict[str, torch.Tensor]:
+    """The 27-channel features of only the listed branches, plus the clamped albedo.
+
+    Gives exactly the tensors of :func:`kpcn.features.make_features` (same ops
+    on the same values; a test checks bit equality) but builds a branch's
+    channels only when it is listed, reads only the buffers those branches
+    need, and computes the shared normal/albedo/depth gradients once.
+
+    Args:
+        buffers: ``(B, C, H, W)`` tensors named as in :data:`INPUT_LAYERS`
+            (those of an unlisted branch may be absent).
+        depth_scale: depth normaliser; default the largest depth per image.
+        branches: subset of ``("diffuse", "specular")``.
+
+    Returns:
+        ``{"albedo": (B, 3, H, W), "diffuse": (B, 27, H, W)?, "specular": (B, 27, H, W)?}``.
+    """
+    branches = tuple(branches)
+    need = list(SHARED_LAYERS) + [n for b in branches for n in BRANCH_LAYERS[b]]
+    missing = [n for n in need if n not in buffers]
     if missing:
-        raise KeyError(f"make_features: missing buffers {missing}; got {sorted(buffers)}")
-    b = {k: torch.nan_to_num(v.float(), nan=0.0, posinf=0.0, neginf=0.0) for k, v in buffers.items()}
+        raise KeyError(f"branch_features: missing buffers {missing}; got {sorted(buffers)}")
+    b = {k: torch.nan_to_num(buffers[k].float(), nan=0.0, posinf=0.0, neginf=0.0) for k in need}
     albedo = b["albedo"].clamp_min(0.0)
-    normal = b["normal"]
     depth = b["depth"][:, :1].clamp_min(0.0)
     if depth_scale is None:
         depth_scale = depth_scale_of(depth)
@@ -132,17 +166,21 @@ def make_features(buffers: dict[str, torch.Tensor], depth_scale: torch.Tensor | 
     var_n = _variance(b["normalVariance"])
     var_a = _variance(b["albedoVariance"])
     var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
-
-    a_eps = albedo + EPS
-    diff = diffuse_color(b["diffuse"], albedo)
-    diff_var = _mean_c(_variance_rgb(b["diffuseVariance"]) / a_eps**2)
-    spec_raw = b["specular"].clamp_min(0.0)
-    spec = torch.log1p(spec_raw)
-    spec_var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + spec_raw) ** 2)
-
-    x_d = _branch(diff, diff_var, normal, albedo, depth, var_n, var_a, var_d)
-    x_s = _branch(spec, spec_var, normal, albedo, depth, var_n, var_a, var_d)
-    return Features(x_d, x_s, albedo)
+    aux_gx, aux_gy = gradients(torch.cat([b["normal"], albedo, depth], dim=1))
+    out = {"albedo": albedo}
+    for name in branches:
+        if name == "diffuse":
+            color = diffuse_color(b["diffuse"], albedo)
+            var = _mean_c(_variance_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2)
+        elif name == "specular":
+            raw = b["specular"].clamp_min(0.0)
+            color = specular_color(raw)
+            var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + raw) ** 2)
+        else:
+            raise ValueError(f"branch_features: unknown branch {name!r}; expected one of {BRANCHES}")
+        gx, gy = gradients(color)
+        out[name] = torch.cat([color, var, gx, aux_gx, gy, aux_gy, var_n, var_a, var_d], dim=1)
+    return out
 
 
 def _variance_rgb(v: torch.Tensor) -> torch.Tensor:
@@ -165,11 +203,6 @@ def make_targets(reference: dict[str, torch.Tensor], albedo: torch.Tensor) -> di
     d = torch.nan_to_num(reference["diffuse"].float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
     s = torch.nan_to_num(reference["specular"].float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
     return {"y_diffuse": d / (albedo + EPS), "y_specular": torch.log1p(s), "y_color": d + s}
-
-
-def reconstruct(diffuse: torch.Tensor, specular: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
-    """Final radiance ``(albedo + eps) * diffuse + expm1(specular)`` from branch-space outputs."""
-    return (albedo + EPS) * diffuse + torch.expm1(specular)
 
 
 def frame_features(frame: Frame) -> Features:
