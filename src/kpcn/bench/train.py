@@ -15,7 +15,7 @@ import time
 
 def bench_train(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m kpcn.bench train", description=__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=["configs/small.yaml", "configs/paper.yaml"])
+    p.add_argument("--configs", nargs="+", default=["configs/small.yaml", "configs/small_dpcn.yaml", "configs/paper.yaml"])
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--patch", type=int, default=65)
     p.add_argument("--steps", type=int, default=3)
