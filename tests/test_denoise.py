@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from kpcn import denoise as dn
-from kpcn.features import INPUT_LAYERS, frame_to_tensors, make_features
+from kpcn.features import frame_to_tensors, make_features
 from kpcn.io import Frame, MissingLayerError, read_exr, write_exr
 from kpcn.models import create_model
 

@@ -1,6 +1,5 @@
 """EXR contract: round trips, aliases, missing layers, non-finite values, broken files."""
 import os
-import warnings
 
 import numpy as np
 import pytest

@@ -3,10 +3,8 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 from kpcn.config import load_config

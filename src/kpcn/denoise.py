@@ -73,7 +73,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from .constants import EPS
 from .features import BRANCH_LAYERS as _BRANCH_LAYERS
 from .features import BRANCHES, INPUT_LAYERS, branch_features, depth_scale_of
 from .features import SHARED_LAYERS as _SHARED_LAYERS

@@ -19,11 +19,12 @@ value when working on tiles) and its variance by the square of that.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 import torch
 
-from .constants import EPS, N_FEATURES
+from .constants import EPS, N_FEATURES  # noqa: F401  (N_FEATURES re-exported)
 from .io import Frame
 
 #: layers the features read from a noisy render

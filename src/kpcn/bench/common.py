@@ -1,18 +1,7 @@
 """Shared helpers of the benchmarks: peak-RSS measurement and table formatting."""
 
 
-import argparse
-import json
-import multiprocessing as mp
-import os
-import statistics
-import sys
-import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from typing import Callable
 
-__all__ = ["SUBCOMMANDS", "main", "bench_kernel", "bench_denoise"]
 
 
 def _proc_status_kb(field: str) -> int | None:
@@ -33,6 +22,15 @@ def _reset_peak_rss() -> bool:
         return True
     except OSError:
         return False
+
+
+def _peak_rss_kb(reset_ok: bool) -> tuple[int, str]:
+    """Peak RSS (kB) since the last reset, and how it was measured."""
+    if reset_ok and _proc_status_kb("VmHWM") is not None:
+        return _proc_status_kb("VmHWM"), "VmHWM (reset via /proc/self/clear_refs) - VmRSS before"
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "ru_maxrss - VmRSS before (may over-report)"
 
 
 def _mem_available_bytes() -> int | None:

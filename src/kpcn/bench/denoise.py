@@ -17,14 +17,9 @@ import os
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from typing import Callable
 
-__all__ = ["SUBCOMMANDS", "main", "bench_kernel", "bench_denoise"]
 
-from .common import _fmt_mb, _fmt_s, _mem_available_bytes, _proc_status_kb, _ratio, _reset_peak_rss
-
+from .common import _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
 
 # --------------------------------------------------------------------------- denoise
 #
@@ -95,7 +90,6 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int) -> dict:
     import gc
-    import resource
 
     import numpy as np
     import torch
@@ -141,12 +135,7 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
     out = run()
     first_s = time.perf_counter() - t0
     cpu = [time.process_time() - c0]
-    if reset_ok and _proc_status_kb("VmHWM") is not None:
-        peak_kb = _proc_status_kb("VmHWM")
-        method = "VmHWM (reset via /proc/self/clear_refs) - VmRSS before"
-    else:
-        peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        method = "ru_maxrss - VmRSS before (may over-report)"
+    peak_kb, method = _peak_rss_kb(reset_ok)
     del out
     times = [first_s]
     for _ in range(max(0, repeats - 1)):
@@ -231,8 +220,8 @@ def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats
 
 
 def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
-    from kpcn.render import render_frame
     from kpcn.io import write_exr
+    from kpcn.render import render_frame
 
     t0 = time.perf_counter()
     frame = render_frame(scene, spp=spp, seed=seed, resolution=size)

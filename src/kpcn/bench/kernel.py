@@ -38,16 +38,13 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Callable
 
-__all__ = ["SUBCOMMANDS", "main", "bench_kernel", "bench_denoise"]
 
-from .common import _fmt_mb, _fmt_s, _mem_available_bytes, _proc_status_kb, _ratio, _reset_peak_rss
+from .common import _fmt_mb, _fmt_s, _mem_available_bytes, _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
 
 
 def _kernel_worker(impl: str, size: int, mode: str, k: int, channels: int, batch: int, repeats: int, threads: int | None) -> dict:
     """Runs in a fresh spawned process: one (impl, size, mode) configuration."""
-    import resource
 
     import torch
 
@@ -96,12 +93,7 @@ def _kernel_worker(impl: str, size: int, mode: str, k: int, channels: int, batch
     t0 = time.perf_counter()
     run_once()
     first_s = time.perf_counter() - t0
-    if reset_ok and _proc_status_kb("VmHWM") is not None:
-        peak_kb = _proc_status_kb("VmHWM")
-        method = "VmHWM (reset via /proc/self/clear_refs) - VmRSS before"
-    else:
-        peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        method = "ru_maxrss - VmRSS before (may over-report)"
+    peak_kb, method = _peak_rss_kb(reset_ok)
     mem_mb = (peak_kb - (rss_before_kb or 0)) / 1024.0
     times = []
     for _ in range(repeats):
