@@ -241,3 +241,16 @@ def test_log_input_transform_makes_network_input_scale_robust():
         BranchConfig(input_transform="sqrt")
     with pytest.raises(ValueError, match="dilations"):
         BranchConfig(layers=3, dilations=[1, 2])
+
+
+def test_logvar_transform_resolves_small_variances():
+    from kpcn.models.kpcn import VARIANCE_CHANNELS, transform_input
+
+    x = torch.zeros(2, N_FEATURES, 1, 1)
+    x[0, list(VARIANCE_CHANNELS)] = 1e-5  # a converged render
+    x[1, list(VARIANCE_CHANNELS)] = 1e-3  # a noisy one
+    log1p_gap = (transform_input(x, "log")[1] - transform_input(x, "log")[0]).abs().max()
+    logvar_gap = (transform_input(x, "logvar")[1] - transform_input(x, "logvar")[0]).abs().max()
+    assert log1p_gap < 1e-2 < 4.0 < logvar_gap  # log(1e-3 / 1e-5) ~ 4.6 apart
+    other = [c for c in range(N_FEATURES) if c not in VARIANCE_CHANNELS]
+    assert torch.equal(transform_input(x, "logvar")[:, other], transform_input(x, "log")[:, other])

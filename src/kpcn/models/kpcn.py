@@ -168,14 +168,28 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
     return nn.Sequential(*mods)
 
 
-INPUT_TRANSFORMS = ("log", "none")
+INPUT_TRANSFORMS = ("logvar", "log", "none")
+#: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
+VARIANCE_CHANNELS = (3, 24, 25, 26)
+VARIANCE_FLOOR = 1e-6
 
 
 def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
-    """What the conv stack sees: ``sign(x) log1p(|x|)`` for ``"log"``, ``x`` for ``"none"``."""
+    """What the conv stack sees.
+
+    ``"none"``: the raw features. ``"log"``: ``sign(x) log1p(|x|)``. ``"logvar"``:
+    the same, but the variance channels become ``log(var + 1e-6)``: a signed
+    log1p maps a 1024-spp variance and a 32-spp one to the same ~0, so the net
+    could not tell a converged input from a noisy one and blurred both.
+    """
     if kind == "none":
         return x
-    return torch.sign(x) * torch.log1p(x.abs())
+    y = torch.sign(x) * torch.log1p(x.abs())
+    if kind == "logvar" and x.shape[1] > max(VARIANCE_CHANNELS):
+        idx = list(VARIANCE_CHANNELS)
+        y = y.clone()
+        y[:, idx] = torch.log(x[:, idx].clamp_min(0.0) + VARIANCE_FLOOR)
+    return y
 
 
 def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
