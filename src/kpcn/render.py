@@ -139,12 +139,12 @@ def _override_xml(path: Path, resolution: tuple[int, int] | None) -> tuple[str, 
         notes.append(f"film size -> {resolution[0]}x{resolution[1]}")
     set_param("string", "pixel_format", "rgb")
     set_param("string", "component_format", "float32")
-    for rf in film.findall("rfilter"):
-        if rf.get("type") != "box":
-            notes.append(f"film rfilter {rf.get('type')} -> box")
+    filters = film.findall("rfilter")
+    if [rf.get("type") for rf in filters] != ["box"]:
+        old = filters[0].get("type") if filters else "gaussian (default)"
+        notes.append(f"film rfilter {old} -> box")
+    for rf in filters:
         film.remove(rf)
-    if not notes or not any("rfilter" in n for n in notes):
-        notes.append("film rfilter -> box")
     ET.SubElement(film, "rfilter", {"type": "box"})
     # the sample count is given to mi.render; make the sampler independent
     for smp in sensor.findall("sampler"):
@@ -165,16 +165,17 @@ def load_scene(scene: Any, resolution: tuple[int, int] | None = None):
     built-in test scene or ``"random:<seed>"`` for a procedural one.
     """
     mi = ensure_variant()
+    name = "dict"
     if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
         from . import scenes
 
         kind, arg = str(scene).split(":", 1)
         res = resolution or (64, 64)
-        d = scenes.test_scene(arg, resolution=res) if kind == "test" else scenes.random_scene(int(arg), resolution=res)
         name = str(scene)
-        scene = d
+        scene = scenes.test_scene(arg, resolution=res) if kind == "test" else scenes.random_scene(int(arg), resolution=res)
     if isinstance(scene, dict):
-        name = locals().get("name") or scene.get("kpcn_name", "dict")
+        # callers may name a dict scene with a "kpcn_name" key (Mitsuba would reject it)
+        name = scene.get("kpcn_name", name)
         d, notes = _override_dict({k: v for k, v in scene.items() if k != "kpcn_name"}, resolution)
         _log_notes(name, notes)
         return mi.load_dict(d), name, notes
@@ -266,7 +267,7 @@ def render_frame(
     for layer, c in layout:
         raw[layer] = acc[..., c0 : c0 + c]
         c0 += c
-    layers = {name_: raw[name_].astype(np.float32) for name_, _ in [("color", 3)] + [(n, c) for n, c in aov_layout() if not n.endswith("_m2")]}
+    layers = {layer: raw[layer].astype(np.float32) for layer, _ in layout if not layer.endswith("_m2")}
     for layer, _ in MOMENT2:
         var = (raw[f"{layer}_m2"] - raw[layer] ** 2) / (spp - 1)
         layers[f"{layer}Variance"] = np.maximum(var, 0.0).astype(np.float32)

@@ -36,7 +36,7 @@ from .config import Config, config_from_args, make_parser, save_config
 from .data import FrameDataset, PatchDataset, read_manifest
 from .io import atomic_write
 from .losses import create_loss
-from .metrics import all_metrics
+from .metrics import all_metrics, tonemap
 from .models import create_model
 
 log = logging.getLogger("kpcn.train")
@@ -224,8 +224,8 @@ def _make_optimizer(model, lr: float):
 
 
 def _tonemap_t(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp_min(0)
-    return (x / (1 + x)) ** (1 / 2.2)
+    """:func:`kpcn.metrics.tonemap` of a ``(C, H, W)`` tensor, for TensorBoard images."""
+    return torch.from_numpy(tonemap(x.detach().cpu().numpy())).float()
 
 
 def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
