@@ -1,0 +1,4 @@
+"""``python -m kpcn.render``: see :mod:`kpcn.render.cli`."""
+from .cli import main
+
+raise SystemExit(main())
