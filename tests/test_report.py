@@ -34,13 +34,12 @@ HAS_OIDN = oidn_available()
 
 @pytest.fixture(scope="module")
 def stand_in(tmp_path_factory):
-    """A tiny KPCN (3 layers x 8, 5x5 kernels) saved as a training checkpoint."""
-    from kpcn.config import Config, ModelConfig
-    from kpcn.train import build_model, save_checkpoint
+    """A tiny KPCN (3 layers x 8, 5x5 kernels) saved as a weights file."""
+    from kpcn.checkpoint import save_weights
+    from kpcn.models import create_model
 
-    cfg = Config(model=ModelConfig(name="kpcn", layers=3, width=8, kernel_size=5))
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, build_model(cfg), None, 0, cfg)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.safetensors"
+    save_weights(path, create_model("kpcn", layers=3, width=8, kernel_size=5))
     return path
 
 

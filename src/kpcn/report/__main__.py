@@ -1,0 +1,4 @@
+"""``python -m kpcn.report``."""
+from .cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,137 @@
+"""Rendering and caching: scene names and fingerprints, :func:`render_scene`, :class:`SceneRenders`."""
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..io import Frame, read_exr, write_exr
+from .config import INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
+
+
+def scene_slug(scene: Any) -> str:
+    """A folder name for a scene: ``test:glossy`` -> ``test_glossy``, ``a/b.xml`` -> ``b_<hash>``."""
+    if isinstance(scene, dict):
+        return str(scene.get("kpcn_name", "dict")).replace(":", "_").replace("/", "_")
+    s = os.fspath(scene)
+    if s.startswith(("test:", "random:")):
+        return s.replace(":", "_")
+    p = Path(s).resolve()
+    return f"{p.stem}_{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
+
+
+def scene_label(scene: Any) -> str:
+    """A short human-readable name for tables and plots."""
+    if isinstance(scene, dict):
+        return str(scene.get("kpcn_name", "dict"))
+    s = os.fspath(scene)
+    return s if s.startswith(("test:", "random:")) else Path(s).stem
+
+
+@dataclass
+class SceneRenders:
+    """The renders of one scene: ``inputs[spp]`` and ``reference`` (Frames, layers ``(H, W, C)``)."""
+
+    scene: Any
+    label: str
+    inputs: dict[int, Frame]
+    reference: Frame
+    rendered: list[str]  #: paths rendered in this run (the others came from the cache)
+
+
+def _cached(path: Path, spp: int, resolution: tuple[int, int]) -> Frame | None:
+    """The frame at ``path`` if it exists and matches ``spp`` and ``(W, H)``; else None."""
+    if not path.exists():
+        return None
+    try:
+        fr = read_exr(path, require=("color", "albedo", "normal"))
+    except Exception as exc:  # a damaged cache file is rendered again
+        log.warning("%s: unreadable cache (%s), rendering again", path, exc)
+        return None
+    w, h = resolution
+    if fr.spp != spp or fr.shape != (h, w) or "renderTimeSeconds" not in fr.meta:
+        log.warning("%s: cached render does not match (spp %s, size %s), rendering again", path, fr.spp, fr.shape)
+        return None
+    return fr
+
+
+def _hash_value(h, x: Any) -> None:
+    """Feed a canonical encoding of a scene-dict value into the hash ``h``."""
+    if isinstance(x, dict):
+        h.update(b"{")
+        for k in sorted(x, key=str):
+            h.update(repr(k).encode())
+            _hash_value(h, x[k])
+        h.update(b"}")
+    elif isinstance(x, (list, tuple)):
+        h.update(b"[")
+        for v in x:
+            _hash_value(h, v)
+        h.update(b"]")
+    elif isinstance(x, (str, int, float, bool)) or x is None:
+        h.update(repr(x).encode())
+    else:  # Mitsuba objects: transforms (their matrix), bitmaps (their pixels)
+        arr = np.asarray(x.matrix if hasattr(x, "matrix") else x, dtype=np.float64)
+        h.update(type(x).__name__.encode() + repr(arr.shape).encode() + arr.tobytes())
+
+
+def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
+    """What to render and its fingerprint: ``(dict or path, 12 hex digits)``.
+
+    ``test:``/``random:`` names are built into their scene dicts here, so the
+    fingerprint covers the generated content (a change to :mod:`kpcn.scenes`
+    invalidates the cache); for an XML file it is the file's bytes (not the
+    meshes and textures it references: use ``--rerender`` after changing those).
+    """
+    h = hashlib.sha1(repr(tuple(resolution)).encode())
+    if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
+        from .. import scenes
+
+        kind, arg = str(scene).split(":", 1)
+        d = scenes.test_scene(arg, resolution=resolution) if kind == "test" else scenes.random_scene(int(arg), resolution=resolution)
+        _hash_value(h, d)
+        return {**d, "kpcn_name": str(scene)}, h.hexdigest()[:12]
+    if isinstance(scene, dict):
+        _hash_value(h, scene)
+        return scene, h.hexdigest()[:12]
+    h.update(Path(scene).read_bytes())
+    return scene, h.hexdigest()[:12]
+
+
+def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] = log.info) -> SceneRenders:
+    """Render (or load from the cache) the input ladder and the reference of one scene.
+
+    Cache: ``<out>/<name>/renders/<scene>/<W>x<H>-<fingerprint>/input_<spp>spp_seed<seed>.exr``
+    and ``reference_<spp>spp_seed<seed>.exr``; a cached file is used when its
+    header's spp and its size match.
+    """
+    from ..render import load_scene, render_frame
+
+    w, h = cfg.resolution
+    source, fingerprint = scene_source(scene, tuple(cfg.resolution))
+    folder = cfg.folder / "renders" / scene_slug(scene) / f"{w}x{h}-{fingerprint}"
+    jobs = [(s, folder / f"input_{s}spp_seed{cfg.seed}.exr", INPUT_ROLE_BASE + s) for s in sorted(set(cfg.spp))]
+    jobs.append((cfg.ref_spp, folder / f"reference_{cfg.ref_spp}spp_seed{cfg.seed}.exr", 1))
+    frames: dict[Path, Frame] = {}
+    rendered: list[str] = []
+    loaded = None
+    for spp, path, role in jobs:
+        fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
+        if fr is None:
+            if loaded is None:
+                loaded = load_scene(source, cfg.resolution)
+                # untimed warm-up: the first render of a scene compiles its kernels (~2 s)
+                render_frame(source, 2, cfg.seed, cfg.resolution, role=WARMUP_ROLE, loaded=loaded, max_depth=cfg.max_depth)
+            fr = render_frame(source, spp, cfg.seed, cfg.resolution, role=role, loaded=loaded, max_depth=cfg.max_depth)
+            fr.meta["scene"] = scene_label(scene)
+            write_exr(path, fr.layers, fr.meta)
+            fr.path = str(path)
+            rendered.append(str(path))
+            progress(f"rendered {scene_label(scene)} {spp} spp in {fr.meta['renderTimeSeconds']:.2f} s")
+        frames[path] = fr
+    inputs = {s: frames[p] for s, p, _ in jobs[:-1]}
+    return SceneRenders(scene, scene_label(scene), inputs, frames[jobs[-1][1]], rendered)

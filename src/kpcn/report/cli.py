@@ -1,0 +1,70 @@
+"""Command line: ``python -m kpcn.report`` (see the package docstring for the options)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from ..config import ConfigError, add_config_args, config_from_args
+from . import __doc__ as _package_doc
+from .config import DEFAULT_SCENES, ReportConfig
+from .run import run_report
+
+
+def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
+    p = argparse.ArgumentParser(prog="python -m kpcn.report", description=_package_doc.split("\n\n")[0])
+    add_config_args(p)
+    p.add_argument("--scenes", nargs="+", help=f"XML paths, test:<name>, random:<seed> (default: {' '.join(DEFAULT_SCENES)})")
+    p.add_argument("--spp", type=int, nargs="+", help="input spp ladder, each >= 2 (default: 2 4 8 16 32 64)")
+    p.add_argument("--ref-spp", type=int, help="reference spp (default: 1024)")
+    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 128 128")
+    p.add_argument("--models", nargs="+", help="shipped model names, weights files or label=file (default: kpcn dpcn)")
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="allow .pt model files that only full unpickling can load (runs their code: trusted files only)")
+    p.add_argument("--no-oidn", action="store_true", help="leave OIDN out even if pyoidn is installed")
+    p.add_argument("--out", help="results root (default: results/report)")
+    p.add_argument("--name", help="report name: files go to <out>/<name>/ (default: default, or quick)")
+    p.add_argument("--seed", type=int, help="base render seed (default: 0)")
+    p.add_argument("--device", help="auto, cpu or cuda (default: auto)")
+    p.add_argument("--tile", type=int, help="denoise tile size (default: 256)")
+    p.add_argument("--repeats", type=int, help="timed denoise calls per frame, median reported (default: 1)")
+    p.add_argument("--equal-time-spp", type=int, help="model spp of the equal-time figure (default: 8)")
+    p.add_argument("--contact-spp", type=int, help="spp of the contact sheet (default: 8)")
+    p.add_argument("--rerender", action="store_true", help="render again even when cached EXRs exist")
+    p.add_argument("--quick", action="store_true", help="tiny run: 2 scenes at 24x24, spp 2 4, reference 64")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only the Markdown summary")
+    a = p.parse_args(argv)
+    flags = {
+        "scenes": a.scenes, "spp": a.spp, "ref_spp": a.ref_spp, "resolution": a.resolution, "models": a.models,
+        "out": a.out, "name": a.name, "seed": a.seed, "device": a.device, "tile": a.tile, "repeats": a.repeats,
+        "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
+        "oidn": False if a.no_oidn else None, "rerender": True if a.rerender else None,
+        "trust_checkpoint": True if a.trust_checkpoint else None,
+    }
+    cfg = config_from_args(ReportConfig, a, flags, defaults=ReportConfig.QUICK if a.quick else None)
+    return cfg, a
+
+
+def main(argv=None) -> int:
+    try:
+        cfg, args = _parse_args(argv)
+    except ConfigError as exc:
+        print(f"python -m kpcn.report: {exc}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(name)s: %(message)s")
+    logging.getLogger("kpcn.render").setLevel(logging.WARNING)  # its per-render override notes
+    from ..render import RendererUnavailable
+
+    try:
+        result = run_report(cfg)
+    except RendererUnavailable as exc:
+        print(f"error: {exc}")
+        return 2
+    md = result.markdown
+    # stdout: the mean table and the equal-time figure (the per-scene table is in the file)
+    print(md.split("\n## Per scene")[0].rstrip())
+    print(f"\nwrote {', '.join(str(p) for p in result.paths.values())}")
+    left_out = [n for n in result.summary["notes"] if n.startswith("model ")]
+    if left_out:
+        print(f"WARNING: {len(left_out)} of {len(cfg.models)} model(s) could not be loaded and are not in the report (see Notes)")
+    return 0

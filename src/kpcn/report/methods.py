@@ -1,0 +1,96 @@
+"""The denoisers under test: :class:`Method`, model specs, kpcn models and OIDN.
+
+Every call into :mod:`kpcn.inference` is in :func:`model_method`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..io import Frame
+from .config import ReportConfig, log
+
+
+@dataclass
+class Method:
+    """A denoiser under test: ``fn(frame) -> (H, W, 3)`` radiance."""
+
+    name: str
+    fn: Callable[[Frame], np.ndarray]
+    description: str = ""
+    repeats: int = 1
+    warmed_up: bool = False
+
+    def __call__(self, frame: Frame) -> tuple[np.ndarray, float]:
+        """Denoise ``frame``; returns the ``(H, W, 3)`` image and the seconds of the call.
+
+        The first call of a method is preceded by an untimed warm-up call (weights,
+        thread pools, OIDN's filter set-up); with ``repeats > 1`` the median is returned.
+        """
+        if not self.warmed_up:
+            self.fn(frame)
+            self.warmed_up = True
+        times = []
+        for _ in range(max(1, self.repeats)):
+            t0 = time.perf_counter()
+            img = self.fn(frame)
+            times.append(time.perf_counter() - t0)
+        return np.asarray(img, dtype=np.float32), float(np.median(times))
+
+
+def parse_model_spec(spec: str) -> tuple[str, str]:
+    """``"kpcn"`` -> ``("kpcn", "kpcn")``; ``"a/b.pt"`` -> ``("b", "a/b.pt")``; ``"lbl=x"`` -> ``("lbl", "x")``."""
+    if "=" in spec:
+        label, value = spec.split("=", 1)
+        return label.strip(), value.strip()
+    p = Path(spec)
+    if p.suffix in (".pt", ".pth", ".ckpt", ".safetensors") or p.exists():
+        return p.stem, spec
+    return spec, spec
+
+
+def model_method(spec: str, cfg: ReportConfig) -> Method:
+    """A :class:`Method` running :func:`kpcn.inference.denoise` with the model ``spec``."""
+    from ..inference import denoise, load_model
+
+    label, value = parse_model_spec(spec)
+    model = load_model(value, cfg.device, trust_pickle=cfg.trust_checkpoint)  # loaded once: loading is not timed
+
+    def fn(frame: Frame) -> np.ndarray:
+        return denoise(frame, model=model, tile=cfg.tile, device=cfg.device)
+
+    return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats)
+
+
+def oidn_method(repeats: int = 1) -> Method:
+    """OIDN (``hdr=True``, colour + albedo + normal) as a :class:`Method`."""
+    from ..baselines import oidn_denoise, oidn_version
+
+    def fn(frame: Frame) -> np.ndarray:
+        return oidn_denoise(frame["color"], frame["albedo"], frame["normal"])
+
+    return Method("oidn", fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), hdr, albedo + normal", repeats)
+
+
+def build_methods(cfg: ReportConfig) -> tuple[list[Method], list[str]]:
+    """The methods to evaluate and notes on the ones left out (a model that fails to load, no OIDN)."""
+    from ..baselines import oidn_available
+
+    methods, notes = [], []
+    for spec in cfg.models:
+        try:
+            methods.append(model_method(spec, cfg))
+        except Exception as exc:
+            msg = f"model {spec!r} left out: {type(exc).__name__}: {exc}"
+            log.error(msg)
+            notes.append(msg)
+    if cfg.oidn:
+        if oidn_available():
+            methods.append(oidn_method(cfg.repeats))
+        else:
+            notes.append("OIDN was not installed (pip install pyoidn): no OIDN rows.")
+    return methods, notes

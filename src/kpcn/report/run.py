@@ -1,0 +1,131 @@
+"""The driver: :func:`run_report` renders, evaluates and writes everything; :class:`ReportResult`."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..config import save_config
+from ..io import atomic_write
+from .analysis import equal_time, evaluate_scene, geomean, mean_table
+from .cache import render_scene, scene_label
+from .config import MC, METRICS, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
+from .methods import Method, build_methods
+from .plots import contact_sheet, plot_error_vs_time
+from .tables import markdown_report, write_csv
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def _machine() -> str:
+    import torch
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    dev = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, {dev}, "
+            f"torch {torch.__version__} with {torch.get_num_threads()} threads, load average {load:.2f} at start")
+
+
+@dataclass
+class ReportResult:
+    """What :func:`run_report` produced: CSV rows, mean rows, equal-time rows, summary.json content, Markdown, file paths."""
+
+    rows: list[dict]
+    means: list[dict]
+    equal_time: list[dict]
+    summary: dict
+    markdown: str
+    paths: dict[str, Path]
+    rendered: list[str]  #: EXRs rendered in this run (empty when everything came from the cache)
+
+
+def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Method], means: Sequence[dict],
+                  eq: Sequence[dict], notes: list[str], machine: str, contact_spp: int, eq_spp: int) -> dict:
+    """The content of ``summary.json``: config, mean metrics per method and spp, equal-time figures."""
+    scene_names = [scene_label(s) if isinstance(s, dict) else os.fspath(s) for s in cfg.scenes]
+    return {
+        "config": {**asdict(cfg), "scenes": scene_names, "resolution": list(cfg.resolution),
+                   "contact_spp": contact_spp, "equal_time_spp": eq_spp},
+        "scenes": list(scenes),
+        "methods": [MC] + [m.name for m in methods],
+        "method_descriptions": {m.name: m.description for m in methods},
+        "machine": machine,
+        "notes": notes,
+        "mean": {m: {str(r["spp"]): {k: r[k] for k in METRICS + TIMES} for r in means if r["method"] == m}
+                 for m in dict.fromkeys(r["method"] for r in means)},
+        "equal_time": list(eq),
+        "equal_time_geomean": ({"model": eq[0]["model"], "model_spp": eq_spp,
+                                "mc_spp": geomean([e["mc_spp"] for e in eq]),
+                                "time_ratio": geomean([e["time_ratio"] for e in eq])} if eq else None),
+    }
+
+
+def write_outputs(folder: Path, rows, means, images, summary: dict, markdown: str, contact_spp: int, crop: int,
+                  cfg: ReportConfig | None = None) -> dict[str, Path]:
+    """Write the CSV, Markdown, plots, summary and resolved config (each atomically); returns their paths."""
+    paths = {"csv": folder / "results.csv", "markdown": folder / "report.md", "plot": folder / "error_vs_time.png",
+             "contact_sheet": folder / "contact_sheet.png", "summary": folder / "summary.json"}
+    if cfg is not None and all(isinstance(s, str) for s in cfg.scenes):  # in-memory dict scenes are not YAML
+        paths["config"] = folder / "config.yaml"
+        save_config(cfg, paths["config"])
+    write_csv(paths["csv"], rows)
+    _write_text(paths["markdown"], markdown)
+    plot_error_vs_time(paths["plot"], rows, means)
+    contact_sheet(paths["contact_sheet"], images, rows, contact_spp, crop)
+    _write_text(paths["summary"], json.dumps(summary, indent=1, default=_json_default))
+    return paths
+
+
+def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] | None = None) -> ReportResult:
+    """Render, evaluate and write the report for ``cfg`` (default :class:`ReportConfig`)."""
+    cfg = cfg or ReportConfig()
+    cfg.validate()
+    say = progress or log.info
+    machine = _machine()
+    cfg.folder.mkdir(parents=True, exist_ok=True)
+
+    methods, notes = build_methods(cfg)
+    contact_spp = nearest_spp(cfg.spp, cfg.contact_spp)
+    eq_spp = nearest_spp(cfg.spp, cfg.equal_time_spp)
+    if eq_spp != cfg.equal_time_spp:
+        notes.append(f"equal-time figure at {eq_spp} spp ({cfg.equal_time_spp} is not on the ladder)")
+
+    rows, renders, images, rendered = [], {}, {}, []
+    for scene in cfg.scenes:
+        sr = render_scene(cfg, scene, say)
+        if sr.label in renders:  # two XML files with the same name
+            sr.label = f"{sr.label}#{len(renders)}"
+        renders[sr.label] = sr
+        rendered += sr.rendered
+        if sr.rendered:
+            time.sleep(SETTLE_SECONDS)
+        r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp)
+        rows += r
+        images[sr.label] = imgs
+        say(f"evaluated {sr.label}")
+
+    means = mean_table(rows)
+    model_names = [m.name for m in methods if m.name != "oidn"]
+    eq = equal_time(rows, renders, model_names[0], eq_spp) if model_names else []
+    if not model_names:
+        notes.append("no kpcn model was evaluated: no equal-time figure")
+    summary = build_summary(cfg, list(renders), methods, means, eq, notes, machine, contact_spp, eq_spp)
+    md = markdown_report(rows, means, eq, summary)
+    paths = write_outputs(cfg.folder, rows, means, images, summary, md, contact_spp, cfg.crop, cfg)
+    return ReportResult(rows, means, eq, summary, md, paths, rendered)
