@@ -35,7 +35,7 @@ def test_patch_dataset_over_rendered_folder(tiny_dataset):
     ds = PatchDataset(read_manifest(tiny_dataset, spp=[8]), patch_size=32, patches_per_frame=5, seed=1)
     assert len(ds) == 15
     item = ds[7]
-    assert item["x_diffuse"].shape == (27, 32, 32) and item["x_specular"].shape == (27, 32, 32)
+    assert item["diffuse"].shape == (27, 32, 32) and item["specular"].shape == (27, 32, 32)
     for k in ("albedo", "y_diffuse", "y_specular", "y_color", "noisy_color"):
         assert item[k].shape == (3, 32, 32)
     first = ds.index.copy()
@@ -44,13 +44,13 @@ def test_patch_dataset_over_rendered_folder(tiny_dataset):
     ds.resample(0)
     np.testing.assert_array_equal(first, ds.index)  # reproducible per epoch
     batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=4)))
-    assert batch["x_diffuse"].shape == (4, 27, 32, 32)
+    assert batch["diffuse"].shape == (4, 27, 32, 32)
 
 
 def test_frame_dataset(tiny_dataset):
     ds = FrameDataset(read_manifest(tiny_dataset, spp=[4]))
     item = ds[0]
-    assert item["x_diffuse"].shape == (27, 48, 48)
+    assert item["diffuse"].shape == (27, 48, 48)
     assert torch.isfinite(item["y_color"]).all()
 
 

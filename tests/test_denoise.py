@@ -1,14 +1,20 @@
-"""kpcn.denoise: tiled == untiled, skipping what a scene does not need, weights loading, EXR output, CLI."""
+"""kpcn.inference: tiled == untiled, skipping what a scene does not need, weights loading, EXR output, CLI."""
 from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
-from kpcn import denoise as dn
-from kpcn.features import frame_to_tensors, make_features
+from kpcn import inference as dn
+from kpcn.checkpoint import CheckpointError, save_train_state, save_weights
+from kpcn.features import branch_features, frame_to_tensors, make_features
+from kpcn.inference.cli import main as cli_main
 from kpcn.io import Frame, MissingLayerError, read_exr, write_exr
-from kpcn.models import create_model
+from kpcn.models import create_model, weights_entry
 
 # conv radius 2 (5x5), k = 5: receptive radius 4, halo 5
 SMALL = dict(layers=2, width=8, conv_size=5, kernel_size=5, out_init_gain=1.0)
@@ -35,10 +41,11 @@ def _close(a, b, rtol=1e-5):
 
 
 def _direct(model, frame):
-    """The model run untiled on make_features of the whole frame (no denoise.py code involved)."""
+    """The model run untiled on make_features of the whole frame (no kpcn.inference code involved)."""
     f = make_features(frame_to_tensors(frame))
     with torch.no_grad():
-        return model(f.x_diffuse, f.x_specular, f.albedo)["color"][0].permute(1, 2, 0).numpy()
+        out = model({"diffuse": f.x_diffuse, "specular": f.x_specular, "albedo": f.albedo})
+        return out["color"][0].permute(1, 2, 0).numpy()
 
 
 # ----------------------------------------------------------------------------- features
@@ -48,18 +55,18 @@ def test_branch_subsets_and_crops_match_full_features(render):
     frame = render("test:glossy", 4, 1, resolution=(40, 30))
     buf = frame_to_tensors(frame)
     ref = make_features(buf)
-    got = dn.branch_features(buf)
+    got = branch_features(buf)
     assert torch.equal(got["diffuse"], ref.x_diffuse)
     assert torch.equal(got["specular"], ref.x_specular)
     assert torch.equal(got["albedo"], ref.albedo)
     # one branch: only that branch's buffers are needed and its tensor is the same
     only = {k: v for k, v in buf.items() if not k.startswith("specular")}
-    d = dn.branch_features(only, branches=("diffuse",))
+    d = branch_features(only, branches=("diffuse",))
     assert set(d) == {"albedo", "diffuse"} and torch.equal(d["diffuse"], ref.x_diffuse)
     # the whole frame's depth scale on a crop gives the whole frame's features of that crop
     scale = float(frame["depth"].max())
     crop = {k: v[..., 5:20, 7:30] for k, v in buf.items()}
-    c = dn.branch_features(crop, scale)
+    c = branch_features(crop, scale)
     torch.testing.assert_close(c["diffuse"][..., :-1, :-1], ref.x_diffuse[..., 5:19, 7:29], rtol=0, atol=0)
 
 
@@ -71,6 +78,19 @@ def test_plan_tiles_cover_the_frame_once():
             assert tile.cy0 == max(0, tile.y0 - halo) and tile.cx1 == min(w, tile.x1 + halo)
         assert (cover == 1).all()
     assert len(list(dn.plan_tiles(50, 70, None, 5))) == 1
+    # aligned crops (a model that pools by `alignment`): corners on the grid, the halo still covered
+    for h, w, t, halo, a in [(50, 70, 24, 5, 8), (8, 8, 3, 6, 4), (33, 17, 16, 0, 2), (40, 40, 10, 3, 8)]:
+        cover = np.zeros((h, w), int)
+        size = dn.tile_size(t, a)
+        assert size % a == 0 and t <= size < t + a
+        for tile in dn.plan_tiles(h, w, t, halo, alignment=a):
+            cover[tile.interior] += 1
+            assert tile.y0 % a == 0 and tile.x0 % a == 0
+            # the crop starts at the grid point at or before interior - halo, so it holds the whole halo
+            assert tile.cy0 == max(0, (tile.y0 - halo) // a * a) and tile.cx0 == max(0, (tile.x0 - halo) // a * a)
+            assert tile.cy0 % a == 0 and tile.cx0 % a == 0
+            assert tile.cy1 == min(h, tile.y1 + halo) and tile.cx1 == min(w, tile.x1 + halo)
+        assert (cover == 1).all()
 
 
 # ----------------------------------------------------------------------------- tiling
@@ -125,10 +145,13 @@ def test_zero_specular_branch_is_not_run(render, monkeypatch, name):
     frame = _copy(src, specular=z, specularVariance=np.zeros_like(src["specularVariance"]),
                   color=src["diffuse"].copy(), colorVariance=src["diffuseVariance"].copy())
     model = _model(name)
-    # the specular features are never built either
+    # the specular features are never built either (the kpcn_split spec builds them with branch_features)
+    import kpcn.inputs
+
     built = []
-    orig_bf = dn.branch_features
-    monkeypatch.setattr(dn, "branch_features", lambda b, s, br: built.append(tuple(br)) or orig_bf(b, s, br))
+    orig_bf = kpcn.inputs.branch_features
+    monkeypatch.setattr(kpcn.inputs, "branch_features",
+                        lambda b, s, br, **kw: built.append(tuple(br)) or orig_bf(b, s, br, **kw))
     spec = _Counter(model.specular, monkeypatch)
     diff = _Counter(model.diffuse, monkeypatch)
     res = dn.denoise_result(frame, model, tile=16)
@@ -146,7 +169,7 @@ def test_zero_specular_branch_is_not_run(render, monkeypatch, name):
         # a DPCN adds a residual even to a zero input; skipping sets that component to 0
         f = make_features(frame_to_tensors(frame))
         with torch.no_grad():
-            want = model(f.x_diffuse, None, f.albedo)["color"][0].permute(1, 2, 0).numpy()
+            want = model({"diffuse": f.x_diffuse, "specular": None, "albedo": f.albedo})["color"][0].permute(1, 2, 0).numpy()
         _close(res.color, want)
 
 
@@ -194,24 +217,23 @@ def test_noisy_no_hit_tiles_are_denoised(render):
 # ----------------------------------------------------------------------------- files and weights
 
 
-def _checkpoint(tmp_path, name="kpcn", cfg=SMALL, fname="model.pt"):
-    from kpcn.config import load_config
-    from kpcn.train import save_checkpoint
-
-    extra = {k: v for k, v in cfg.items() if k not in ("layers", "width", "conv_size", "kernel_size")}
-    overrides = [f"model.name={name}"] + [f"model.{k}={cfg[k]}" for k in ("layers", "width", "conv_size", "kernel_size")]
-    conf = load_config(None, overrides, "t")
-    conf.model.extra = extra
+def _checkpoint(tmp_path, name="kpcn", cfg=SMALL, fname="model.safetensors"):
+    """A weights file (``.safetensors``) or a training state (``.pt``) of a fresh model, and the model."""
     model = _model(name, **cfg)
     path = tmp_path / fname
-    save_checkpoint(path, model, None, 7, conf)
+    if path.suffix == ".safetensors":
+        save_weights(path, model, step=7)
+    else:
+        save_train_state(path, model, None, 7, {"model": model.hparams()})
     return path, model
 
 
-def test_load_model_from_checkpoint_and_cache(tmp_path, render):
-    path, model = _checkpoint(tmp_path)
+@pytest.mark.parametrize("fname", ["model.safetensors", "latest.pt"])
+def test_load_model_from_checkpoint_and_cache(tmp_path, render, fname):
+    path, model = _checkpoint(tmp_path, fname=fname)
     a = dn.load_model(path, device="cpu")
     assert a is dn.load_model(str(path), device="cpu")  # cached
+    assert a.name == "kpcn" and a.hparams() == model.hparams()
     for k, v in model.state_dict().items():
         assert torch.equal(a.state_dict()[k], v)
     frame = render("test:glossy", 4, 1, resolution=(30, 20))
@@ -219,20 +241,81 @@ def test_load_model_from_checkpoint_and_cache(tmp_path, render):
 
 
 def test_load_model_errors(tmp_path):
-    if not dn.DEFAULT_WEIGHTS.exists():
+    default = weights_entry(dn.DEFAULT_MODEL).path
+    if not default.exists():
         with pytest.raises(dn.DefaultWeightsMissing, match="kpcn.train"):
             dn.load_model(None)
     else:
         assert dn.load_model(None, device="cpu").receptive_radius > 0
-    if not (dn.WEIGHTS_DIR / "dpcn.pt").exists():
-        with pytest.raises(dn.DefaultWeightsMissing, match="no shipped weights for model 'dpcn'"):
+    if not weights_entry("dpcn").path.exists():
+        with pytest.raises(dn.DefaultWeightsMissing, match=r"shipped weights dpcn:small are registered but .* is missing"):
             dn.load_model("dpcn")
-    with pytest.raises(FileNotFoundError, match="neither a checkpoint file nor a registered model"):
+    else:
+        assert dn.load_model("dpcn", device="cpu").name == "dpcn"
+    # a registered model without shipped weights (was: dpcn before it shipped any)
+    with pytest.raises(dn.DefaultWeightsMissing, match=r"no shipped weights unet_kpcn:<default>; shipped: .*kpcn\.train"):
+        dn.load_model("unet_kpcn")
+    with pytest.raises(FileNotFoundError, match=r"nope\.pt: neither a weights file nor a registered model name"):
         dn.load_model(str(tmp_path / "nope.pt"))
     bad = tmp_path / "bad.pt"
     torch.save({"weights": {}}, bad)
-    with pytest.raises(ValueError, match="missing key"):
+    with pytest.raises(CheckpointError, match=r"bad\.pt: not a kpcn checkpoint \(no 'model' weights; found \['weights'\]\)"):
         dn.load_model(bad)
+
+
+class _Evil:
+    """Unpickling this runs code: it writes ``marker`` (what a malicious checkpoint could do instead)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return exec, (f"open({self.marker!r}, 'w').write('pwned')",)
+
+
+def _malicious_checkpoint(tmp_path, model, protocol):
+    """A ``.pt`` checkpoint with valid weights plus an object whose unpickling writes a marker file."""
+    marker = tmp_path / "PWNED"
+    path = tmp_path / "evil.pt"
+    ckpt = {"model": model.state_dict(), "model_name": model.name, "hparams": model.hparams(), "step": 1,
+            "note": _Evil(marker)}
+    torch.save(ckpt, path, pickle_protocol=protocol)
+    assert not marker.exists()
+    return path, marker
+
+
+# torch.save's default protocol (2), and the protocol plain pickle writes (torch's weights-only loader fails earlier)
+@pytest.mark.parametrize("protocol", [2, pickle.DEFAULT_PROTOCOL])
+def test_malicious_pickle_checkpoint_is_refused(tmp_path, render, protocol):
+    model = _model("kpcn")
+    path, marker = _malicious_checkpoint(tmp_path, model, protocol)
+    frame = render("test:glossy", 4, 1, resolution=(16, 16))
+    src = tmp_path / "noisy.exr"
+    write_exr(src, frame.layers, frame.meta)
+    out = tmp_path / "out.exr"
+
+    # the command line refuses it without running its code
+    proc = subprocess.run([sys.executable, "-m", "kpcn.inference", str(src), "-o", str(out), "--model", str(path),
+                           "--device", "cpu"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0, proc.stdout + proc.stderr
+    assert not marker.exists(), "unpickling the checkpoint ran its code"
+    assert not out.exists()
+    assert f"cannot load the model: {path}: " in proc.stderr
+    if protocol == 2:
+        assert "--trust-checkpoint" in proc.stderr  # says how to load a file one trusts
+
+    # so does the Python API (and denoise through it), naming the file
+    with pytest.raises(CheckpointError, match=r"evil\.pt: holds Python objects" if protocol == 2 else r"evil\.pt: "):
+        dn.load_model(path, device="cpu")
+    with pytest.raises(CheckpointError, match=r"evil\.pt"):
+        dn.denoise(frame, str(path), device="cpu")
+    assert not marker.exists()
+
+    # trust_pickle=True unpickles it (running its code) and loads the weights
+    loaded = dn.load_model(path, device="cpu", trust_pickle=True)
+    assert marker.exists() and marker.read_text() == "pwned"
+    for k, v in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v)
 
 
 def test_exr_in_exr_out(tmp_path, render):
@@ -285,7 +368,7 @@ def test_cli_continues_after_a_bad_file(tmp_path, render, capsys):
     garbage = tmp_path / "garbage.exr"
     garbage.write_bytes(b"not an exr at all")
     out_dir = tmp_path / "out"
-    rc = dn.main([str(garbage), str(good), str(partial), "--out-dir", str(out_dir), "--model", str(path),
+    rc = cli_main([str(garbage), str(good), str(partial), "--out-dir", str(out_dir), "--model", str(path),
                   "--tile", "8", "--device", "cpu"])
     cap = capsys.readouterr()
     assert rc == 1
@@ -295,9 +378,9 @@ def test_cli_continues_after_a_bad_file(tmp_path, render, capsys):
     assert "2 of 3 file(s) failed" in cap.err and "partial.exr" in cap.err and "missing layer" in cap.err
     assert "cannot read as OpenEXR" in cap.err
     with pytest.raises(SystemExit):
-        dn.main([str(good), str(partial), "-o", str(tmp_path / "x.exr")])
-    assert dn.main([str(good), "--model", str(tmp_path / "nope.pt")]) == 2
-    assert dn.main([str(good), "-o", str(tmp_path / "one.exr"), "--model", str(path), "--device", "cpu"]) == 0
+        cli_main([str(good), str(partial), "-o", str(tmp_path / "x.exr")])
+    assert cli_main([str(good), "--model", str(tmp_path / "nope.pt")]) == 2
+    assert cli_main([str(good), "-o", str(tmp_path / "one.exr"), "--model", str(path), "--device", "cpu"]) == 0
     assert read_exr(tmp_path / "one.exr")["color"].shape == (16, 20, 3)
 
 

@@ -79,3 +79,32 @@ def test_features_finite_on_extreme_buffers(render):
 def test_missing_buffer_is_named():
     with pytest.raises(KeyError, match="albedo"):
         make_features({"diffuse": torch.zeros(1, 3, 2, 2)})
+
+
+def test_input_specs_build_these_features(render):
+    # the models read their inputs through kpcn.inputs specs: kpcn_split must give exactly these features
+    from kpcn.inputs import get_input_spec
+
+    noisy = render("test:glossy", spp=8)
+    ref = render("test:glossy", spp=256, role=1)
+    feats = frame_features(noisy)
+    spec = get_input_spec("kpcn_split")
+    assert spec.branches == ("diffuse", "specular") and spec.channels == N_FEATURES
+    inputs = spec.build(frame_to_tensors(noisy, spec.layers))
+    assert set(inputs) == {"diffuse", "specular", "albedo"}
+    assert torch.equal(inputs["diffuse"], feats.x_diffuse)
+    assert torch.equal(inputs["specular"], feats.x_specular)
+    assert torch.equal(inputs["albedo"], feats.albedo)
+    targets = spec.targets(frame_to_tensors(ref, spec.target_layers), inputs)
+    want = make_targets(frame_to_tensors(ref, ("diffuse", "specular")), feats.albedo)
+    assert set(targets) == set(want)
+    for k in want:
+        assert torch.equal(targets[k], want[k])
+    # without variances: the same features less the variance channels (3 and 24..26), no variance layer read
+    novar = get_input_spec("split_novar")
+    assert not any(n.endswith("Variance") for n in novar.layers)
+    inputs = novar.build(frame_to_tensors(noisy, novar.layers))
+    keep = [c for c in range(N_FEATURES) if c not in (3, 24, 25, 26)]
+    assert novar.channels == len(keep) == 23
+    assert torch.equal(inputs["diffuse"], feats.x_diffuse[:, keep])
+    assert torch.equal(inputs["specular"], feats.x_specular[:, keep])

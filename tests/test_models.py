@@ -2,6 +2,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from kpcn.config import ConfigError
 from kpcn.constants import EPS, N_FEATURES
 from kpcn.models import (
     BranchConfig,
@@ -22,6 +23,11 @@ def _inputs(b=2, h=12, w=13, seed=0, dtype=torch.float32):
     xs = torch.rand(b, N_FEATURES, h, w, generator=g, dtype=dtype)
     albedo = torch.rand(b, 3, h, w, generator=g, dtype=dtype)
     return xd, xs, albedo
+
+
+def _d(xd, xs, albedo):
+    """The model's input dict (the ``kpcn_split`` spec): a branch given as None is absent."""
+    return {"diffuse": xd, "specular": xs, "albedo": albedo}
 
 
 def _neighbourhood_range(colour, k):
@@ -46,14 +52,16 @@ def test_registry_lists_and_creates():
 def test_registry_errors():
     with pytest.raises(ValueError, match="known models: .*dpcn.*kpcn"):
         create_model("unet9000")
-    with pytest.raises(ValueError, match="unknown config field"):
+    with pytest.raises(ConfigError, match=r"model kpcn\.layerz: unknown key; did you mean 'layers'\? valid keys: "):
         create_model("kpcn", layerz=3)
+    with pytest.raises(ConfigError, match=r"model kpcn\.layers: expected an integer, got 'abc'"):
+        create_model("kpcn", layers="abc")
     with pytest.raises(ValueError, match="odd"):
         create_model("kpcn", kernel_size=4)
     with pytest.raises(ValueError, match="already registered"):
 
-        @register_model("kpcn")
-        def other(**cfg):  # pragma: no cover
+        @register_model("kpcn", config=BranchConfig)
+        def other(config):  # pragma: no cover
             return None
 
 
@@ -62,12 +70,12 @@ def test_output_shapes_and_channels_last(name):
     torch.manual_seed(0)
     m = create_model(name, **TINY)
     xd, xs, albedo = _inputs()
-    out = m(xd, xs, albedo)
+    out = m(_d(xd, xs, albedo))
     assert set(out) == {"diffuse", "specular", "color"}
     for v in out.values():
         assert v.shape == albedo.shape
     cl = lambda t: t.to(memory_format=torch.channels_last)  # noqa: E731
-    out_cl = m(cl(xd), cl(xs), cl(albedo))
+    out_cl = m(_d(cl(xd), cl(xs), cl(albedo)))
     for key in out:
         torch.testing.assert_close(out_cl[key], out[key], rtol=1e-5, atol=1e-5)
 
@@ -78,7 +86,7 @@ def test_kpcn_output_in_convex_hull():
     m = create_model("kpcn", **TINY, out_init_gain=5.0)
     xd, xs, albedo = _inputs(seed=1)
     xd[:, :3] = torch.randn_like(xd[:, :3]) * 10  # signed colours too
-    out = m(xd, xs, albedo)
+    out = m(_d(xd, xs, albedo))
     for key, x in (("diffuse", xd), ("specular", xs)):
         lo, hi = _neighbourhood_range(x[:, :3], 5)
         y = out[key]
@@ -114,7 +122,7 @@ def test_reconstruction_formula():
     torch.manual_seed(4)
     m = create_model("kpcn", **TINY)
     xd, xs, albedo = _inputs(seed=4)
-    out = m(xd, xs, albedo)
+    out = m(_d(xd, xs, albedo))
     expected = (albedo + EPS) * out["diffuse"] + torch.expm1(out["specular"])
     torch.testing.assert_close(out["color"], expected)
     assert (out["diffuse"] >= 0).all() and (out["specular"] >= 0).all()
@@ -128,7 +136,7 @@ def test_colour_finite_and_non_negative(name, scale):
     xd, xs, albedo = _inputs(seed=5)
     xd = (xd - 0.3) * scale  # includes negative values
     xs = (xs - 0.3) * scale
-    out = m(xd, xs, albedo * scale)
+    out = m(_d(xd, xs, albedo * scale))
     assert torch.isfinite(out["color"]).all()
     assert (out["color"] >= 0).all()
 
@@ -148,9 +156,9 @@ def test_branch_skipping(name):
     torch.manual_seed(6)
     m = create_model(name, **TINY)
     xd, xs, albedo = _inputs(seed=6)
-    full = m(xd, xs, albedo)
-    only_d = m(xd, None, albedo)
-    only_s = m(None, xs, albedo)
+    full = m(_d(xd, xs, albedo))
+    only_d = m(_d(xd, None, albedo))
+    only_s = m(_d(None, xs, albedo))
     assert torch.equal(only_d["specular"], torch.zeros_like(albedo))
     assert torch.equal(only_s["diffuse"], torch.zeros_like(albedo))
     torch.testing.assert_close(only_d["diffuse"], full["diffuse"])
@@ -158,7 +166,7 @@ def test_branch_skipping(name):
     # DPCN outputs may be negative: the reconstruction clamps them
     torch.testing.assert_close(only_d["color"], (albedo + EPS) * full["diffuse"].clamp(min=0))
     torch.testing.assert_close(only_s["color"], torch.expm1(full["specular"].clamp(min=0)))
-    both_none = m(None, None, albedo)
+    both_none = m(_d(None, None, albedo))
     assert torch.equal(both_none["color"], torch.zeros_like(albedo))
 
 
@@ -208,7 +216,7 @@ def test_backward_gives_finite_gradients():
     torch.manual_seed(9)
     m = create_model("kpcn", **TINY)
     xd, xs, albedo = _inputs(b=1, h=10, w=10, seed=9)
-    out = m(xd, xs, albedo)
+    out = m(_d(xd, xs, albedo))
     out["color"].abs().mean().backward()
     grads = [p.grad for p in m.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
@@ -218,12 +226,14 @@ def test_backward_gives_finite_gradients():
 def test_input_checks():
     m = create_model("kpcn", **TINY)
     xd, xs, albedo = _inputs()
-    with pytest.raises(ValueError, match="27 channels"):
-        m(xd[:, :20], xs, albedo)
+    with pytest.raises(ValueError, match=r"inputs\['diffuse'\] must be a \(B, 27, H, W\) tensor, got \(2, 20, 12, 13\)"):
+        m(_d(xd[:, :20], xs, albedo))
+    with pytest.raises(ValueError, match="27 channels"):  # a branch module called on its own checks too
+        m.diffuse(xd[:, :20])
     with pytest.raises(ValueError, match="albedo"):
-        m(xd, xs, albedo[:, :2])
+        m(_d(xd, xs, albedo[:, :2]))
     with pytest.raises(ValueError, match="batch and spatial"):
-        m(xd[:, :, :10], xs, albedo)
+        m(_d(xd[:, :, :10], xs, albedo))
     with pytest.raises(ValueError, match="layers"):
         BranchConfig(layers=0)
     with pytest.raises(ValueError, match="padding_mode"):

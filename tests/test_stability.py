@@ -1,17 +1,18 @@
 """Numerical stability of denoising and training on extreme inputs built from tiny real renders.
 
 Models: a small random-init KPCN and DPCN, and the shipped default weights
-(``src/kpcn/weights/default.pt``) when that file exists. Set
-``KPCN_REQUIRE_DEFAULT=1`` to make a missing default file a failure instead of
-leaving it out.
+(``src/kpcn/weights/kpcn_small.safetensors``, i.e. ``weights_entry("kpcn").path``)
+when that file exists. Set ``KPCN_REQUIRE_DEFAULT=1`` to make a missing default
+file a failure instead of leaving it out.
 
 What is asserted, and why:
 
 * every model, every case: the output is finite and non-negative;
-* KPCN (random or trained): each output pixel lies in the range that the
-  convex-combination property allows, ``(albedo + eps) * [min, max] of the
-  diffuse branch colour + [min, max] of the specular radiance`` over its
-  ``k x k`` neighbourhood; a constant image comes back unchanged (1e-5 relative);
+* KPCN (random or trained; kernel predictors declare ``model.zero_preserving``):
+  each output pixel lies in the range that the convex-combination property
+  allows, ``(albedo + eps) * [min, max] of the diffuse branch colour + [min,
+  max] of the specular radiance`` over its ``k x k`` neighbourhood; a constant
+  image comes back unchanged (1e-5 relative);
 * the shipped default model only: a converged input is not made worse,
   ``relMSE(out, ref) <= 1.1 relMSE(in, ref) + 1e-4``. A random-init network
   carries no such promise (it blurs), so for it only the bound above is checked.
@@ -26,32 +27,39 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from kpcn import denoise as dn
+from kpcn import inference as dn
 from kpcn.constants import EPS
 from kpcn.features import make_features, make_targets
 from kpcn.io import Frame, read_exr, write_exr
 from kpcn.losses import create_loss
 from kpcn.metrics import relmse
-from kpcn.models import KPCNBranch, create_model
+from kpcn.models import KPCNBranch, create_model, weights_entry
 
 RES = (24, 24)
 SMALL = dict(layers=3, width=12, conv_size=3, kernel_size=5, out_init_gain=1.0)
 REQUIRE_DEFAULT = os.environ.get("KPCN_REQUIRE_DEFAULT") == "1"
-MODEL_IDS = ["kpcn", "dpcn"] + (["default"] if dn.DEFAULT_WEIGHTS.exists() or REQUIRE_DEFAULT else [])
+DEFAULT_WEIGHTS = weights_entry(dn.DEFAULT_MODEL).path
+MODEL_IDS = ["kpcn", "dpcn"] + (["default"] if DEFAULT_WEIGHTS.exists() or REQUIRE_DEFAULT else [])
 RADIANCE = ("color", "diffuse", "specular")
 
 
 @pytest.fixture(scope="module", params=MODEL_IDS)
 def model(request):
     if request.param == "default":
-        assert dn.DEFAULT_WEIGHTS.exists(), f"KPCN_REQUIRE_DEFAULT=1 but {dn.DEFAULT_WEIGHTS} does not exist"
-        return dn.load_model(None, device="cpu")
-    torch.manual_seed(0)
-    return create_model(request.param, **SMALL).eval()
+        assert DEFAULT_WEIGHTS.exists(), f"KPCN_REQUIRE_DEFAULT=1 but {DEFAULT_WEIGHTS} does not exist"
+        m = dn.load_model(None, device="cpu")
+    else:
+        torch.manual_seed(0)
+        m = create_model(request.param, **SMALL).eval()
+    # the KPCN-only checks below key on zero_preserving: it must be set for exactly the kernel predictors
+    assert m.zero_preserving == isinstance(m.diffuse, KPCNBranch)
+    assert m.zero_preserving == (request.param != "dpcn")
+    return m
 
 
 def _is_kpcn(m) -> bool:
-    return isinstance(m.diffuse, KPCNBranch)
+    # kernel predictors declare zero_preserving (the convex-combination bounds below hold for them)
+    return m.zero_preserving
 
 
 def _copy(frame: Frame) -> Frame:
@@ -316,7 +324,7 @@ def test_training_step_on_extreme_patches_is_finite(render, kind, loss_name):
         for name, x in feats.as_dict().items():
             assert torch.isfinite(x).all(), f"{case}: non-finite feature {name}"
         m.zero_grad(set_to_none=True)
-        out = m(feats.x_diffuse, feats.x_specular, feats.albedo)
+        out = m({"diffuse": feats.x_diffuse, "specular": feats.x_specular, "albedo": feats.albedo})
         stage1 = loss_fn(out["diffuse"], tg["y_diffuse"]) + loss_fn(out["specular"], tg["y_specular"])
         stage2 = loss_fn(out["color"], tg["y_color"])
         for stage, loss in (("stage1", stage1), ("stage2", stage2)):

@@ -7,17 +7,19 @@ import sys
 import numpy as np
 import torch
 
+from kpcn.checkpoint import load_train_state, read_weights, weights_sha256
 from kpcn.config import load_config
-from kpcn.train import load_checkpoint, train
+from kpcn.train import train
+from kpcn.train_config import RunConfig
 
 
 def tiny_cfg(root, tmp_path, name="t", **train_kw):
-    cfg = load_config(None, [
+    cfg = load_config(RunConfig, None, [
         f"data.root={root}", "data.patch_size=24", "data.patches_per_frame=8", "data.val_scenes=1",
         "model.layers=3", "model.width=12", "model.kernel_size=5",
         "train.batch_size=4", "train.lr=3e-3", "train.val_every=1000", "train.log_every=1",
-        "train.ckpt_every=3",
-    ], name)
+        "train.ckpt_every=3", f"name={name}",
+    ])
     cfg.results_dir = str(tmp_path)
     for k, v in train_kw.items():
         setattr(cfg.train, k, v)
@@ -28,7 +30,7 @@ def _fixed_batch_loss(model, batch):
     from kpcn.losses import l1
 
     with torch.no_grad():
-        out = model(batch["x_diffuse"], batch["x_specular"], batch["albedo"])
+        out = model({k: batch[k] for k in ("diffuse", "specular", "albedo")})
         return float(l1(out["diffuse"], batch["y_diffuse"]) + l1(out["specular"], batch["y_specular"]))
 
 
@@ -43,7 +45,7 @@ def test_training_lowers_the_loss(tiny_dataset, tmp_path):
     torch.manual_seed(cfg.train.seed)
     initial = build_model(cfg)
     trained = build_model(cfg)
-    trained.load_state_dict(load_checkpoint(tmp_path / "t" / "model.pt")["model"])
+    trained.load_state_dict(read_weights(tmp_path / "t" / "model.safetensors")[1])
     ds = PatchDataset(split_pairs(cfg)[0], 24, 8, seed=123)
     batch = torch.utils.data.default_collate([ds[i] for i in range(0, len(ds), max(1, len(ds) // 16))])
     before, after = _fixed_batch_loss(initial, batch), _fixed_batch_loss(trained, batch)
@@ -63,13 +65,13 @@ def test_resume_continues_exactly(tiny_dataset, tmp_path):
     # "kill" after 6 steps: run a shorter schedule into the same folder, then resume the full one
     short = tiny_cfg(tiny_dataset, tmp_path, "part", stage1_steps=5, stage2_steps=1)
     train(short, progress=False)
-    state = load_checkpoint(tmp_path / "part" / "checkpoints" / "latest.pt")
+    state = load_train_state(tmp_path / "part" / "checkpoints" / "latest.pt")
     assert state["step"] == 6 and state["stage"] == 2
     resumed = train(part_cfg, resume=True, progress=False)
     assert len(resumed["losses"]) == 3
     np.testing.assert_allclose(resumed["losses"], full["losses"][6:], rtol=1e-5)
-    a = load_checkpoint(tmp_path / "full" / "model.pt")["model"]
-    b = load_checkpoint(tmp_path / "part" / "model.pt")["model"]
+    a = read_weights(tmp_path / "full" / "model.safetensors")[1]
+    b = read_weights(tmp_path / "part" / "model.safetensors")[1]
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
 
@@ -91,12 +93,12 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
     hashes = summary["weight_sha256_per_rank"]
     assert len(hashes) == 2 and hashes[0] == hashes[1], hashes
     # only rank 0 wrote, and what it wrote is the trained model, not the initial one
-    state = load_checkpoint(tmp_path / "ddp" / "model.pt")
-    assert state["step"] == 5
-    from kpcn.train import build_model, weights_sha256
+    record, weights = read_weights(tmp_path / "ddp" / "model.safetensors")
+    assert record["step"] == 5
+    from kpcn.train import build_model
     torch.manual_seed(0)
-    fresh = build_model(load_config(None, sets[3:6]))
+    fresh = build_model(load_config(RunConfig, None, sets[3:6]))
     assert weights_sha256(fresh.state_dict()) != hashes[0]
-    model = build_model(load_config(None, sets[3:6]))
-    model.load_state_dict(state["model"])
+    model = build_model(load_config(RunConfig, None, sets[3:6]))
+    model.load_state_dict(weights)
     assert weights_sha256(model.state_dict()) == hashes[0]

@@ -1,33 +1,34 @@
-"""kpcn: learned denoisers (KPCN, DPCN) for Monte Carlo renderings.
+"""kpcn: learned kernel-predicting denoisers for Monte Carlo renderings.
 
-``kpcn.denoise("frame.exr")`` denoises a multi-layer EXR with the shipped
-default model; see :mod:`kpcn.denoise`. Submodules follow the data:
-:mod:`kpcn.io` → :mod:`kpcn.render` → :mod:`kpcn.features` / :mod:`kpcn.data`
-→ :mod:`kpcn.models` and :mod:`kpcn.ops` → :mod:`kpcn.train` /
-:mod:`kpcn.denoise` → :mod:`kpcn.report`.
+``from kpcn import denoise``; ``denoise("frame.exr")`` denoises a multi-layer
+EXR with the shipped default model (:mod:`kpcn.inference`). Submodules follow
+the data: :mod:`kpcn.io` → :mod:`kpcn.render` → :mod:`kpcn.inputs` /
+:mod:`kpcn.features` / :mod:`kpcn.data` → :mod:`kpcn.models` and
+:mod:`kpcn.ops` → :mod:`kpcn.train` / :mod:`kpcn.inference` → :mod:`kpcn.report`.
 """
 from importlib import import_module
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _LAZY = {
+    "denoise": ("kpcn.inference", "denoise"),
+    "denoise_result": ("kpcn.inference", "denoise_result"),
+    "load_model": ("kpcn.inference", "load_model"),
     "create_model": ("kpcn.models", "create_model"),
     "list_models": ("kpcn.models", "list_models"),
     "read_exr": ("kpcn.io", "read_exr"),
     "write_exr": ("kpcn.io", "write_exr"),
-    "load_model": ("kpcn.denoise", "load_model"),
 }
 
 
 def __getattr__(name):
-    # `kpcn.denoise` is the module, callable as the function (see kpcn/denoise.py);
-    # the rest are imported on first use so `import kpcn` stays light.
-    if name == "denoise":
-        return import_module("kpcn.denoise")
+    # imported on first use so `import kpcn` stays light (torch is not loaded by `import kpcn`)
     if name in _LAZY:
         module, attr = _LAZY[name]
-        return getattr(import_module(module), attr)
+        value = getattr(import_module(module), attr)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'kpcn' has no attribute {name!r}")
 
 
-__all__ = ["denoise", "__version__", *_LAZY]
+__all__ = ["__version__", *_LAZY]

@@ -20,7 +20,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .features import INPUT_LAYERS, TARGET_LAYERS, frame_to_tensors, make_features, make_targets
+from .features import frame_to_tensors
+from .inputs import InputSpec, get_input_spec
 from .io import Frame, read_exr
 
 PAPER_PATCHES_PER_PIXEL = 400 / (1280 * 720)
@@ -49,23 +50,32 @@ def read_manifest(root: str | Path, spp: Sequence[int] | None = None) -> list[Fr
     return pairs
 
 
-def read_pair(pair: FramePair) -> tuple[Frame, Frame]:
-    """The noisy and the reference frame of a pair, checked for the layers training needs."""
-    noisy = read_exr(pair.input_path, require=INPUT_LAYERS + ("color",))
-    ref = read_exr(pair.reference_path, require=TARGET_LAYERS)
+DEFAULT_SPEC = "kpcn_split"
+
+
+def read_pair(pair: FramePair, spec: InputSpec | str = DEFAULT_SPEC) -> tuple[Frame, Frame]:
+    """The noisy and the reference frame of a pair, checked for the layers ``spec`` needs."""
+    spec = get_input_spec(spec)
+    noisy = read_exr(pair.input_path, require=tuple(dict.fromkeys(spec.layers + ("color",))))
+    ref = read_exr(pair.reference_path, require=spec.target_layers)
     return noisy, ref
 
 
-def load_pair(pair: FramePair) -> dict[str, torch.Tensor]:
-    """Features and targets of one whole frame, ``(1, C, H, W)`` tensors."""
-    return pair_tensors(*read_pair(pair))
+def load_pair(pair: FramePair, spec: InputSpec | str = DEFAULT_SPEC) -> dict[str, torch.Tensor]:
+    """Inputs and targets of one whole frame, ``(1, C, H, W)`` tensors."""
+    return pair_tensors(*read_pair(pair, spec), spec=spec)
 
 
-def pair_tensors(noisy: Frame, ref: Frame) -> dict[str, torch.Tensor]:
-    """Features of ``noisy`` and targets from ``ref``, ``(1, C, H, W)`` tensors."""
-    feats = make_features(frame_to_tensors(noisy))
-    targets = make_targets(frame_to_tensors(ref, TARGET_LAYERS), feats.albedo)
-    out = {**feats.as_dict(), **targets}
+def pair_tensors(noisy: Frame, ref: Frame, spec: InputSpec | str = DEFAULT_SPEC) -> dict[str, torch.Tensor]:
+    """The model inputs of ``noisy`` (as ``spec`` builds them), targets from ``ref`` and ``noisy_color``.
+
+    All ``(1, C, H, W)``: one entry per branch plus ``albedo``, ``y_<branch>``,
+    ``y_color`` and ``noisy_color``.
+    """
+    spec = get_input_spec(spec)
+    inputs = spec.build(frame_to_tensors(noisy, spec.layers))
+    targets = spec.targets(frame_to_tensors(ref, spec.target_layers), inputs)
+    out = {**inputs, **targets}
     out["noisy_color"] = frame_to_tensors(noisy, ("color",))["color"]
     return out
 
@@ -141,10 +151,11 @@ def sample_patches(
 class PatchDataset(Dataset):
     """Training patches over a rendered data set.
 
-    Frames are loaded once and kept as feature tensors; :meth:`resample`
-    draws a new set of patch positions (call it at each epoch). Items are dicts
-    of ``(C, size, size)`` tensors: ``x_diffuse``, ``x_specular`` (27 each),
-    ``albedo``, ``y_diffuse``, ``y_specular``, ``y_color``, ``noisy_color``.
+    Frames are loaded once and kept as the tensors ``spec`` builds;
+    :meth:`resample` draws a new set of patch positions (call it at each epoch).
+    Items are dicts of ``(C, size, size)`` tensors: one per branch of the spec
+    (``diffuse``, ``specular`` for the split specs), ``albedo``, ``y_<branch>``,
+    ``y_color`` and ``noisy_color``.
     """
 
     def __init__(
@@ -154,6 +165,7 @@ class PatchDataset(Dataset):
         patches_per_frame: int | None = None,
         sampling: str = "importance",
         seed: int = 0,
+        spec: InputSpec | str = DEFAULT_SPEC,
     ):
         if sampling not in ("importance", "uniform"):
             raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
@@ -163,9 +175,10 @@ class PatchDataset(Dataset):
         self.patch_size = patch_size
         self.sampling = sampling
         self.frames, self.importance = [], []
+        self.spec = get_input_spec(spec)
         for p in self.pairs:
-            noisy, ref = read_pair(p)
-            self.frames.append({k: v[0] for k, v in pair_tensors(noisy, ref).items()})
+            noisy, ref = read_pair(p, self.spec)
+            self.frames.append({k: v[0] for k, v in pair_tensors(noisy, ref, self.spec).items()})
             imp = None
             if sampling == "importance":
                 noisy.require(("colorVariance", "normalVariance"))
@@ -196,10 +209,11 @@ class PatchDataset(Dataset):
 
 
 class FrameDataset(Dataset):
-    """Whole frames (features, targets, noisy colour) for validation; items are ``(C, H, W)``."""
+    """Whole frames (inputs, targets, noisy colour) for validation; items are ``(C, H, W)``."""
 
-    def __init__(self, pairs: Sequence[FramePair]):
+    def __init__(self, pairs: Sequence[FramePair], spec: InputSpec | str = DEFAULT_SPEC):
         self.pairs = list(pairs)
+        self.spec = get_input_spec(spec)
         self._cache: dict[int, dict] = {}
 
     def __len__(self) -> int:
@@ -207,5 +221,5 @@ class FrameDataset(Dataset):
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
         if idx not in self._cache:
-            self._cache[idx] = {k: v[0] for k, v in load_pair(self.pairs[idx]).items()}
+            self._cache[idx] = {k: v[0] for k, v in load_pair(self.pairs[idx], self.spec).items()}
         return self._cache[idx]

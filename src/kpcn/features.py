@@ -136,6 +136,7 @@ def branch_features(
     buffers: Mapping[str, torch.Tensor],
     depth_scale: torch.Tensor | float | None = None,
     branches=BRANCHES,
+    variances: bool = True,
 ) -> dict[str, torch.Tensor]:
     """The 27-channel features of only the listed branches, plus the clamped albedo.
 
@@ -149,12 +150,16 @@ def branch_features(
             (those of an unlisted branch may be absent).
         depth_scale: depth normaliser; default the largest depth per image.
         branches: subset of ``("diffuse", "specular")``.
+        variances: ``False`` leaves out the four variance channels (and does not
+            read any variance layer): 23 channels, colour then gradients.
 
     Returns:
         ``{"albedo": (B, 3, H, W), "diffuse": (B, 27, H, W)?, "specular": (B, 27, H, W)?}``.
     """
     branches = tuple(branches)
     need = list(SHARED_LAYERS) + [n for b in branches for n in BRANCH_LAYERS[b]]
+    if not variances:
+        need = [n for n in need if not n.endswith("Variance")]
     missing = [n for n in need if n not in buffers]
     if missing:
         raise KeyError(f"branch_features: missing buffers {missing}; got {sorted(buffers)}")
@@ -164,23 +169,29 @@ def branch_features(
     if depth_scale is None:
         depth_scale = depth_scale_of(depth)
     depth = depth / depth_scale
-    var_n = _variance(b["normalVariance"])
-    var_a = _variance(b["albedoVariance"])
-    var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
+    if variances:
+        var_n = _variance(b["normalVariance"])
+        var_a = _variance(b["albedoVariance"])
+        var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
     aux_gx, aux_gy = gradients(torch.cat([b["normal"], albedo, depth], dim=1))
     out = {"albedo": albedo}
     for name in branches:
         if name == "diffuse":
             color = diffuse_color(b["diffuse"], albedo)
-            var = _mean_c(_variance_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2)
+            if variances:
+                var = _mean_c(_variance_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2)
         elif name == "specular":
             raw = b["specular"].clamp_min(0.0)
             color = specular_color(raw)
-            var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + raw) ** 2)
+            if variances:
+                var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + raw) ** 2)
         else:
             raise ValueError(f"branch_features: unknown branch {name!r}; expected one of {BRANCHES}")
         gx, gy = gradients(color)
-        out[name] = torch.cat([color, var, gx, aux_gx, gy, aux_gy, var_n, var_a, var_d], dim=1)
+        if variances:
+            out[name] = torch.cat([color, var, gx, aux_gx, gy, aux_gy, var_n, var_a, var_d], dim=1)
+        else:
+            out[name] = torch.cat([color, gx, aux_gx, gy, aux_gy], dim=1)
     return out
 
 

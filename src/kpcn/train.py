@@ -2,16 +2,21 @@
 
 Two stages, as in Bako et al. 2017:
 
-1. ``stage1_steps``: the diffuse and specular branches, each on its own target
-   (irradiance and log-specular of the reference);
+1. ``stage1_steps``: every branch of the model's input spec on its own target
+   (for the split specs: irradiance and log-specular of the reference);
 2. ``stage2_steps``: the whole system fine-tuned on the final colour.
 
+The model is built by name from ``model:`` (its keys are checked against the
+model's config dataclass); its input spec decides which layers the data set
+frames must have and what the inputs and targets are (:mod:`kpcn.inputs`).
+
 Results go to ``<results_dir>/<name>/``: ``config.yaml`` (the resolved config),
-``checkpoints/latest.pt`` and ``checkpoints/step_<N>.pt`` (written atomically,
-with optimiser, step and RNG state), ``tb/`` (TensorBoard scalars and images),
-``metrics.jsonl`` (validation). ``--resume`` continues from ``latest.pt`` and
-gives the same losses as an uninterrupted run: the batch of step ``t`` depends
-only on the seed and ``t``.
+``checkpoints/latest.pt`` (training state, written atomically: weights,
+optimiser, step, RNG; loads with ``weights_only=True``), ``tb/`` (TensorBoard
+scalars and images), ``metrics.jsonl`` (validation) and ``model.safetensors``
+(the final weights, for :func:`kpcn.denoise`). ``--resume`` continues from
+``latest.pt`` and gives the same losses as an uninterrupted run: the batch of
+step ``t`` depends only on the seed and ``t``.
 
 Under ``torchrun --nproc_per_node=N`` the same command trains with
 DistributedDataParallel (gloo on CPU, nccl on GPU); each rank takes its share
@@ -19,10 +24,11 @@ of every batch through a ``DistributedSampler`` and only rank 0 writes.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
-import random
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,14 +38,24 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler
 
-from .config import Config, config_from_args, make_parser, save_config
+from .checkpoint import (
+    CheckpointError,
+    load_train_state,
+    save_train_state,
+    save_weights,
+    set_rng_state,
+    weights_sha256,
+)
+from .config import ConfigError, add_config_args, config_from_args, save_config, to_dict
 from .data import FrameDataset, PatchDataset, read_manifest
-from .io import atomic_write
 from .losses import create_loss
 from .metrics import all_metrics, tonemap
 from .models import create_model
+from .train_config import RunConfig
 
 log = logging.getLogger("kpcn.train")
+
+__all__ = ["train", "build_model", "main", "RunConfig"]
 
 
 # ----------------------------------------------------------------------------- distributed
@@ -71,56 +87,12 @@ def setup_distributed(device: str = "auto") -> Dist:
     return Dist(0, 1, torch.device("cuda" if use_cuda else "cpu"))
 
 
-# ----------------------------------------------------------------------------- checkpoints
+# ----------------------------------------------------------------------------- model
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, cfg: Config, extra: dict | None = None) -> None:
-    """Write a checkpoint atomically (temporary file, then rename)."""
-    state = {
-        "model": _unwrap(model).state_dict(),
-        "model_name": cfg.model.name,
-        "model_kwargs": model_kwargs(cfg),
-        "optimizer": optimizer.state_dict() if optimizer is not None else None,
-        "step": step,
-        "config": cfg.to_dict(),
-        "rng": {
-            "torch": torch.get_rng_state(),
-            "numpy": np.random.get_state(),
-            "python": random.getstate(),
-        },
-        **(extra or {}),
-    }
-    atomic_write(path, lambda tmp: torch.save(state, tmp))
-
-
-def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        return torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as exc:
-        raise RuntimeError(f"{path}: not a readable kpcn checkpoint ({exc})") from exc
-
-
-def model_kwargs(cfg: Config) -> dict:
-    m = cfg.model
-    return {"layers": m.layers, "width": m.width, "conv_size": m.conv_size, "kernel_size": m.kernel_size, **m.extra}
-
-
-def build_model(cfg: Config) -> torch.nn.Module:
-    return create_model(cfg.model.name, **model_kwargs(cfg))
-
-
-def weights_sha256(state_dict: dict) -> str:
-    """A digest of a model's weights (to check that distributed ranks agree)."""
-    import hashlib
-
-    h = hashlib.sha256()
-    for k in sorted(state_dict):
-        h.update(k.encode())
-        h.update(state_dict[k].detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
+def build_model(cfg: RunConfig) -> torch.nn.Module:
+    """The model ``cfg.model`` names, built with its hyper-parameters."""
+    return create_model(**cfg.model)
 
 
 def _unwrap(model):
@@ -130,7 +102,7 @@ def _unwrap(model):
 # ----------------------------------------------------------------------------- data
 
 
-def ensure_dataset(cfg: Config, is_main: bool = True) -> Path:
+def ensure_dataset(cfg: RunConfig, is_main: bool = True) -> Path:
     """The training data folder; renders the built-in default data set when it is missing."""
     root = Path(cfg.data.root)
     if (root / "manifest.json").exists():
@@ -148,7 +120,7 @@ def ensure_dataset(cfg: Config, is_main: bool = True) -> Path:
     return root
 
 
-def split_pairs(cfg: Config):
+def split_pairs(cfg: RunConfig):
     root = ensure_dataset(cfg, not dist.is_initialized() or dist.get_rank() == 0)
     pairs = read_manifest(root, cfg.data.spp)
     if cfg.data.val_root:
@@ -162,19 +134,25 @@ def split_pairs(cfg: Config):
 # ----------------------------------------------------------------------------- training
 
 
-def stage_of(step: int, cfg: Config) -> int:
+def stage_of(step: int, cfg: RunConfig) -> int:
     return 1 if step < cfg.train.stage1_steps else 2
 
 
-def compute_loss(out: dict, batch: dict, stage: int, cfg: Config) -> torch.Tensor:
+def model_inputs(model, batch: dict) -> dict:
+    """The entries of ``batch`` the model reads: its spec's branches and the albedo."""
+    return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
+
+
+def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -> torch.Tensor:
+    """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour."""
     if stage == 1:
         loss = create_loss(cfg.train.loss)
-        return loss(out["diffuse"], batch["y_diffuse"]) + loss(out["specular"], batch["y_specular"])
+        return sum(loss(out[b], batch[f"y_{b}"]) for b in branches)
     loss = create_loss(cfg.train.stage2_loss or cfg.train.loss)
     return loss(out["color"], batch["y_color"])
 
 
-def batches(ds: PatchDataset, cfg: Config, d: Dist, start_step: int):
+def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
     """Yield ``(step, batch)`` from ``start_step``; the batch of a step depends only on seed and step."""
     per_rank = max(1, cfg.train.batch_size // d.world)
     steps_per_epoch = max(1, len(ds) // (per_rank * d.world))
@@ -202,7 +180,8 @@ def validate(model, frames: FrameDataset, device) -> dict[str, float]:
     sums: dict[str, float] = {}
     for i in range(len(frames)):
         f = frames[i]
-        out = _unwrap(model)(f["x_diffuse"][None].to(device), f["x_specular"][None].to(device), f["albedo"][None].to(device))
+        inputs = {k: v[None].to(device) for k, v in model_inputs(model, f).items()}
+        out = _unwrap(model)(inputs)
         pred = out["color"][0].permute(1, 2, 0).cpu().numpy()
         ref = f["y_color"].permute(1, 2, 0).numpy()
         for k, v in all_metrics(pred, ref).items():
@@ -214,6 +193,8 @@ def validate(model, frames: FrameDataset, device) -> dict[str, float]:
 
 
 def _set_seed(seed: int) -> None:
+    import random
+
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
@@ -228,7 +209,7 @@ def _tonemap_t(x: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(tonemap(x.detach().cpu().numpy())).float()
 
 
-def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
+def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pickle: bool = False) -> dict:
     """Run training for ``cfg``; returns a summary (final step, last losses, last validation)."""
     from tqdm import tqdm
 
@@ -238,31 +219,36 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     _set_seed(cfg.train.seed)
     run = cfg.run_dir
     ckpt_dir = run / "checkpoints"
+    latest = ckpt_dir / "latest.pt"
+    model = build_model(cfg).to(d.device)
+    state: dict = {}
+    if resume and latest.exists():
+        state = load_train_state(latest, trust_pickle=trust_pickle, map_location=d.device)
+        try:
+            model.load_state_dict(state["model"])
+        except RuntimeError as exc:
+            raise CheckpointError(f"{latest}: its weights do not fit the configured model {cfg.model}: "
+                                  f"{str(exc).splitlines()[0]}") from None
     if d.main:
         ckpt_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, run / "config.yaml")
 
+    spec = model.input_spec
     train_pairs, val_pairs = split_pairs(cfg)
-    ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling, cfg.train.seed)
-    val = FrameDataset(val_pairs)
+    ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling, cfg.train.seed,
+                      spec=spec)
+    val = FrameDataset(val_pairs, spec=spec)
 
-    model = build_model(cfg).to(d.device)
     stage2_lr = cfg.train.stage2_lr or cfg.train.lr
     optimizer = _make_optimizer(model, cfg.train.lr)
     step = 0
-    state: dict = {}
-    latest = ckpt_dir / "latest.pt"
-    if resume and latest.exists():
-        state = load_checkpoint(latest, d.device)
-        model.load_state_dict(state["model"])
+    if state:
         step = state["step"]
         if state.get("stage", 1) == 2:  # the optimiser in the file is the fine-tuning one
             optimizer = _make_optimizer(model, stage2_lr)
         if state["optimizer"] is not None:
             optimizer.load_state_dict(state["optimizer"])
-        torch.set_rng_state(state["rng"]["torch"])
-        np.random.set_state(state["rng"]["numpy"])
-        random.setstate(state["rng"]["python"])
+        set_rng_state(state["rng"])
         if d.main:
             log.info("resumed from %s at step %d", latest, step)
     elif resume and d.main:
@@ -286,10 +272,11 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
 
     # the stage whose optimiser is in use (a checkpoint taken at the boundary still holds stage 1's)
     current_stage = state.get("stage", 1) if state else stage_of(step, cfg)
+    config_dict = to_dict(cfg)
 
     def checkpoint(at_step: int) -> None:
         if d.main:
-            save_checkpoint(latest, model, optimizer, at_step, cfg, {"stage": current_stage})
+            save_train_state(latest, model, optimizer, at_step, config_dict, stage=current_stage)
 
     for step, batch in batches(ds, cfg, d, step):
         stage = stage_of(step, cfg)
@@ -297,8 +284,8 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
             optimizer = _make_optimizer(model, stage2_lr)
             current_stage = stage
         batch = {k: v.to(d.device, non_blocking=True) for k, v in batch.items()}
-        out = ddp(batch["x_diffuse"], batch["x_specular"], batch["albedo"])
-        loss = compute_loss(out, batch, stage, cfg)
+        out = ddp(model_inputs(model, batch))
+        loss = compute_loss(out, batch, stage, cfg, spec.branches)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"step {step}: non-finite loss {loss.item()}")
         optimizer.zero_grad(set_to_none=True)
@@ -308,7 +295,7 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
         optimizer.step()
         loss_value = float(loss.detach())
         losses.append(loss_value)
-        n_patches += batch["x_diffuse"].shape[0] * d.world
+        n_patches += batch["albedo"].shape[0] * d.world
         done = step + 1
         bar.update(1)
         if d.main and done % cfg.train.log_every == 0:
@@ -324,7 +311,7 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
                 writer.add_scalar(f"val/{k}", v, done)
             f = val[0]
             with torch.no_grad():
-                pred = model(f["x_diffuse"][None].to(d.device), f["x_specular"][None].to(d.device), f["albedo"][None].to(d.device))["color"][0].cpu()
+                pred = model({k: v[None].to(d.device) for k, v in model_inputs(model, f).items()})["color"][0].cpu()
             writer.add_images("val/noisy_denoised_reference", torch.stack([_tonemap_t(f["noisy_color"]), _tonemap_t(pred), _tonemap_t(f["y_color"])]), done)
             line = json.dumps({"step": done, **last_val})
             with open(run / "metrics.jsonl", "a") as fh:
@@ -343,9 +330,8 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     if writer:
         writer.close()
     if d.main:
-        # the final model alone, for kpcn.denoise
-        final = run / "model.pt"
-        save_checkpoint(final, model, None, total, cfg, {"stage": 2})
+        # the final weights alone (weights-only), for kpcn.denoise
+        save_weights(run / "model.safetensors", model, step=total, config=config_dict)
     elapsed = time.perf_counter() - t0
     return {"step": total, "losses": losses, "val": last_val, "seconds": elapsed,
             "patches_per_s": n_patches / elapsed if elapsed > 0 else 0.0, "rank": d.rank, "world": d.world,
@@ -353,13 +339,26 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
 
 
 def main(argv=None) -> int:
-    p = make_parser("Train a KPCN/DPCN denoiser.", prog="python -m kpcn.train")
+    p = argparse.ArgumentParser(prog="python -m kpcn.train", description="Train a kpcn denoiser.")
+    add_config_args(p)
+    p.add_argument("--name", help="run name: results go to <results_dir>/<name> (default: the config file's name)")
+    p.add_argument("--results-dir", help="parent folder of run folders (default: results)")
     p.add_argument("--resume", action="store_true", help="continue from <run>/checkpoints/latest.pt")
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="allow a latest.pt that only full unpickling can load (runs any code in it: trusted files only)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    cfg = config_from_args(args)
-    summary = train(cfg, resume=args.resume, progress=not args.no_progress)
+    try:
+        defaults = {"name": Path(args.config).stem} if args.config else None
+        cfg = config_from_args(RunConfig, args, {"name": args.name, "results_dir": args.results_dir}, defaults)
+        summary = train(cfg, resume=args.resume, progress=not args.no_progress, trust_pickle=args.trust_checkpoint)
+    except (ConfigError, CheckpointError) as exc:
+        if args.debug:
+            raise
+        print(f"python -m kpcn.train: {exc}", file=sys.stderr)
+        return 2
     if summary["rank"] == 0:
         print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     if dist.is_initialized():

@@ -1,12 +1,12 @@
 """``python -m kpcn.bench denoise``: whole-frame denoising time and memory against OIDN.
 
-``denoise``: whole-frame :func:`kpcn.denoise.denoise` (tiled) for model configs
+``denoise``: whole-frame :func:`kpcn.inference.denoise` (tiled) for model configs
 (``configs/small.yaml``, ``configs/paper.yaml``; random-init weights) against
 Intel OIDN (``pyoidn``) on the same frames rendered with Mitsuba at each size,
 with kpcn/OIDN ratios from the same run. Memory is measured as for ``kernel``
 (fresh process per configuration, after reading the frame, building the model
 and a 64x64 warm-up). ``denoise --skip`` times the same model with and without
-skipping what a scene does not need (see :mod:`kpcn.denoise`).
+skipping what a scene does not need (see :mod:`kpcn.inference.pipeline`).
 """
 
 
@@ -65,10 +65,10 @@ def _denoise_model_spec(name: str) -> tuple[str, dict, str]:
     for path in candidates:
         if path.is_file():
             from ..config import load_config
-            from ..train import model_kwargs
+            from ..train_config import RunConfig
 
-            cfg = load_config(path)
-            return cfg.model.name, model_kwargs(cfg), str(path)
+            model = dict(load_config(RunConfig, path).model)
+            return model.pop("name"), model, str(path)
     if name in _DENOISE_FALLBACK_MODELS:
         spec = dict(_DENOISE_FALLBACK_MODELS[name])
         return spec.pop("name"), spec, "built-in fallback"
@@ -116,7 +116,7 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         s = (slice(0, min(h, 64)), slice(0, min(w, 64)))
         pyoidn.denoise(color[s].copy(), albedo[s].copy(), normal[s].copy(), hdr=True, quality="high")
     else:
-        from kpcn.denoise import denoise_result
+        from kpcn.inference import denoise_result
         from kpcn.models import create_model
 
         torch.manual_seed(0)
@@ -233,7 +233,7 @@ def _bench_denoise_skip(args) -> int:
     import numpy as np
     import torch
 
-    from kpcn.denoise import denoise_result
+    from kpcn.inference import denoise_result
     from kpcn.io import Frame
     from kpcn.models import create_model
     from kpcn.render import render_frame

@@ -1,10 +1,10 @@
 """``python -m kpcn.bench train``: training throughput (patches/s) per config.
 
-Times full training steps (forward of both branches, L1 loss on both targets,
-backward, Adam step) on batches of ``patch``×``patch`` patches for each config
-file, after ``--warmup`` steps, and prints patches/s and the ratio to the first
-config, all in one run. Step time does not depend on pixel values, so the
-batches are random tensors of the right shapes (27-channel features).
+Times full training steps (forward of every branch, L1 loss on every branch
+target, backward, Adam step) on batches of ``patch``×``patch`` patches for each
+config file, after ``--warmup`` steps, and prints patches/s and the ratio to the
+first config, all in one run. Step time does not depend on pixel values, so the
+batches are random tensors of the shapes the model's input spec builds.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import time
 
 def bench_train(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m kpcn.bench train", description=__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=["configs/small.yaml", "configs/small_dpcn.yaml", "configs/paper.yaml"])
+    p.add_argument("--configs", nargs="+", default=["configs/small.yaml", "configs/small_dpcn.yaml", "configs/small_unet.yaml", "configs/paper.yaml"])
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--patch", type=int, default=65)
     p.add_argument("--steps", type=int, default=3)
@@ -28,27 +28,29 @@ def bench_train(argv: list[str]) -> int:
     from ..config import load_config
     from ..losses import l1
     from ..train import build_model
+    from ..train_config import RunConfig
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
     b, s = args.batch, args.patch
-    batch = {
-        "x_diffuse": torch.rand(b, 27, s, s), "x_specular": torch.rand(b, 27, s, s), "albedo": torch.rand(b, 3, s, s),
-        "y_diffuse": torch.rand(b, 3, s, s), "y_specular": torch.rand(b, 3, s, s),
-    }
     print(f"training throughput: batch {b} of {s}x{s}, {torch.get_num_threads()} threads, median of {args.steps} steps")
-    print(f"{'config':<28} {'params':>9} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
+    print(f"{'config':<28} {'inputs':<20} {'params':>9} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
     base = None
     for path in args.configs:
-        cfg = load_config(path)
+        cfg = load_config(RunConfig, path)
+        torch.manual_seed(0)
         model = build_model(cfg)
+        spec = model.input_spec
+        # the batch the model's input spec builds: one tensor per branch, the albedo and a target per branch
+        batch = {br: torch.rand(b, spec.channels, s, s) for br in spec.branches}
+        batch["albedo"] = torch.rand(b, 3, s, s)
+        targets = {br: torch.rand(b, 3, s, s) for br in spec.branches}
         opt = torch.optim.Adam(model.parameters(), lr=1e-4)
         times = []
         for i in range(args.warmup + args.steps):
             t0 = time.perf_counter()
-            out = model(batch["x_diffuse"], batch["x_specular"], batch["albedo"])
-            loss = l1(out["diffuse"], batch["y_diffuse"]) + l1(out["specular"], batch["y_specular"])
+            out = model(batch)
+            loss = sum(l1(out[br], targets[br]) for br in spec.branches)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -58,5 +60,5 @@ def bench_train(argv: list[str]) -> int:
         rate = b / t
         base = base or rate
         n = sum(p.numel() for p in model.parameters())
-        print(f"{path:<28} {n:>9} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
+        print(f"{path:<28} {spec.name:<20} {n:>9} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
     return 0

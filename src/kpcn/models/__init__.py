@@ -1,26 +1,45 @@
-"""Denoising networks and the model registry."""
+"""Denoising networks, their contract (:class:`DenoiserModel`) and the model registry.
 
-from .kpcn import (
-    EPS,
-    SPECULAR_LOG_MAX,
-    BranchConfig,
-    Denoiser,
-    DPCNBranch,
-    KPCNBranch,
-    reconstruct,
+Adding a model is one file here (a config dataclass, a :class:`DenoiserModel`
+subclass, a ``@register_model`` factory and, when weights ship, a
+``register_weights`` line) plus its import in :func:`registry._ensure_builtin_models`.
+"""
+
+from ..inputs import SPECULAR_LOG_MAX
+from .base import DenoiserModel, check_inputs
+from .kpcn import EPS, BranchConfig, Denoiser, DPCNBranch, KPCNBranch, reconstruct
+from .registry import (
+    WEIGHTS_DIR,
+    create_model,
+    is_model,
+    list_models,
+    list_weights,
+    model_config_class,
+    register_model,
+    register_weights,
+    weights_entry,
 )
-from .registry import create_model, is_model, list_models, register_model
+from .unet import UNetConfig, UNetKPCN
 
 __all__ = [
     "EPS",
     "SPECULAR_LOG_MAX",
     "BranchConfig",
     "Denoiser",
+    "DenoiserModel",
     "DPCNBranch",
     "KPCNBranch",
+    "UNetConfig",
+    "UNetKPCN",
+    "WEIGHTS_DIR",
+    "check_inputs",
     "reconstruct",
     "create_model",
     "is_model",
     "list_models",
+    "list_weights",
+    "model_config_class",
     "register_model",
+    "register_weights",
+    "weights_entry",
 ]

@@ -54,9 +54,11 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import nn
 
-from ..constants import EPS, N_FEATURES
+from ..constants import EPS
+from ..inputs import SPECULAR_LOG_MAX, get_input_spec, split_reconstruct
 from ..ops.kernel_apply import PADDING_MODES, kernel_apply
-from .registry import register_model
+from .base import DenoiserModel, check_inputs
+from .registry import register_model, register_weights
 
 __all__ = [
     "EPS",
@@ -70,10 +72,6 @@ __all__ = [
     "dpcn",
 ]
 
-#: Upper clamp of the specular branch output (log1p space) before ``expm1``;
-#: ``expm1(80) ~ 5.5e34`` is finite in float32.
-SPECULAR_LOG_MAX = 80.0
-
 
 @dataclass
 class BranchConfig:
@@ -84,7 +82,10 @@ class BranchConfig:
         width: channels of the hidden layers.
         conv_size: odd spatial size of every conv.
         kernel_size: odd size ``k`` of the predicted per-pixel kernels (KPCN only).
-        in_channels: channels of the branch input (27, see DESIGN.md 2.2).
+        input_spec: the :mod:`kpcn.inputs` spec the model reads: ``kpcn_split``
+            (27 channels a branch, the paper), ``split_novar`` (23) or
+            ``color_albedo_normal`` (one 9-channel branch).
+        in_channels: channels of the branch input; ``None``: the spec's.
         logit_scale: bound of the kernel logits, ``s * tanh(z / s)``; ``None``
             leaves them unbounded (KPCN only).
         padding_mode: ``"replicate"`` or ``"zeros"`` for the kernel application (KPCN only).
@@ -104,7 +105,8 @@ class BranchConfig:
     width: int = 100
     conv_size: int = 5
     kernel_size: int = 21
-    in_channels: int = N_FEATURES
+    input_spec: str = "kpcn_split"
+    in_channels: int | None = None
     logit_scale: float | None = 16.0
     padding_mode: str = "replicate"
     init_sigma: float | None = 1.5
@@ -113,6 +115,14 @@ class BranchConfig:
     input_transform: str = "log"
 
     def __post_init__(self) -> None:
+        spec = get_input_spec(self.input_spec)
+        if self.in_channels is None:
+            self.in_channels = spec.channels
+        if self.in_channels != spec.channels:
+            raise ValueError(f"BranchConfig.in_channels is {self.in_channels} but input spec {spec.name!r} "
+                             f"gives {spec.channels} channels a branch")
+        if self.input_transform == "logvar" and spec.name != "kpcn_split":
+            raise ValueError(f"BranchConfig.input_transform 'logvar' needs the kpcn_split input spec, not {spec.name!r}")
         for name in ("layers", "width", "conv_size", "kernel_size", "in_channels"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -286,111 +296,77 @@ _BRANCHES = {"kpcn": KPCNBranch, "dpcn": DPCNBranch}
 
 
 def reconstruct(diffuse: torch.Tensor, specular: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
-    """Final radiance from the branch outputs (DESIGN.md 2.2), always finite and >= 0.
+    """Final radiance from the split branch outputs (DESIGN.md 2.2), always finite and >= 0.
 
     ``color = (albedo + EPS) * max(diffuse, 0) + expm1(clamp(specular, 0, SPECULAR_LOG_MAX))``;
-    NaN becomes 0 and +Inf the largest finite value of the dtype.
+    NaN becomes 0 and +Inf the largest finite value of the dtype (:func:`kpcn.inputs.split_reconstruct`).
 
     Shapes: all ``(B, 3, H, W)``.
     """
-    color = (albedo + EPS) * diffuse.clamp(min=0) + torch.expm1(specular.clamp(0.0, SPECULAR_LOG_MAX))
-    big = torch.finfo(color.dtype).max
-    return torch.nan_to_num(color, nan=0.0, posinf=big, neginf=0.0).clamp(min=0.0)
+    return split_reconstruct({"diffuse": diffuse, "specular": specular}, {"albedo": albedo})
 
 
-class Denoiser(nn.Module):
-    """Two-branch denoiser (diffuse + specular) with the KPCN/DPCN reconstruction.
+class Denoiser(DenoiserModel):
+    """Branch-per-component KPCN/DPCN denoiser: one conv stack per branch of the input spec.
 
     Args:
         kind: ``"kpcn"`` or ``"dpcn"``.
-        config: :class:`BranchConfig` shared by both branches.
+        config: :class:`BranchConfig` shared by every branch.
 
-    Attributes:
-        diffuse, specular: the two branch modules (train them on their own by
-            calling them directly on their ``(B, 27, H, W)`` features).
-
-    ``forward(x_diffuse, x_specular, albedo)`` takes ``(B, 27, H, W)`` branch
-    features (either may be ``None``: that component is then zero and its
-    branch is not run) and the ``(B, 3, H, W)`` albedo, and returns a dict:
-
-    - ``diffuse``: ``(B, 3, H, W)`` filtered ``diffuse / (albedo + EPS)`` (unclamped),
-    - ``specular``: ``(B, 3, H, W)`` filtered ``log1p(specular)`` (unclamped),
-    - ``color``: ``(B, 3, H, W)`` final radiance, :func:`reconstruct` of the two.
+    With the split specs the branches are ``diffuse`` and ``specular``
+    (separate weights; train them on their own by calling them directly on
+    their ``(B, C, H, W)`` features); with ``color_albedo_normal`` a single
+    ``color`` branch. ``forward(inputs)`` takes the dict the spec builds (a
+    branch that is absent or ``None`` is zero and not run) and returns
+    ``{branch: (B, 3, H, W) filtered branch colour (unclamped), "color": final radiance}``.
     """
 
     def __init__(self, kind: str, config: BranchConfig | None = None) -> None:
-        super().__init__()
         if kind not in _BRANCHES:
             raise ValueError(f"Denoiser: kind must be one of {sorted(_BRANCHES)}, got {kind!r}")
-        self.kind = kind
-        self.config = config if config is not None else BranchConfig()
+        super().__init__(config if config is not None else BranchConfig())
+        self.kind = self.name = kind
+        self.zero_preserving = kind == "kpcn"  # a convex combination of zeros is zero
         cls = _BRANCHES[kind]
-        self.diffuse = cls(self.config)
-        self.specular = cls(self.config)
+        for b in self.branches:
+            self.add_module(b, cls(self.config))
 
     @property
     def receptive_radius(self) -> int:
-        """Halo (pixels) a tile needs on each side so its interior equals full-frame inference."""
-        return self.diffuse.receptive_radius
+        """Pixels a tile needs on each side so its interior equals full-frame inference (features excluded)."""
+        return getattr(self, self.branches[0]).receptive_radius
 
-    def hparams(self) -> dict:
-        """``{"name": kind, **config}``; ``create_model(**hparams())`` rebuilds the architecture."""
-        return {"name": self.kind, **asdict(self.config)}
-
-    def extra_repr(self) -> str:
-        return f"kind={self.kind!r}, receptive_radius={self.receptive_radius}"
-
-    def forward(
-        self,
-        x_diffuse: torch.Tensor | None,
-        x_specular: torch.Tensor | None,
-        albedo: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if not isinstance(albedo, torch.Tensor) or albedo.dim() != 4 or albedo.shape[1] != 3:
-            shape = tuple(albedo.shape) if isinstance(albedo, torch.Tensor) else type(albedo).__name__
-            raise ValueError(f"Denoiser: albedo must be a (B, 3, H, W) tensor, got {shape}")
-        b, _, h, w = albedo.shape
-        for name, x in (("x_diffuse", x_diffuse), ("x_specular", x_specular)):
-            if x is None:
-                continue
-            _check_branch_input(x, self.config, f"Denoiser ({name})")
-            if (x.shape[0], x.shape[2], x.shape[3]) != (b, h, w):
-                raise ValueError(
-                    f"Denoiser: {name} {tuple(x.shape)} and albedo {tuple(albedo.shape)} "
-                    "must agree in batch and spatial size"
-                )
-        shape = (b, 3, h, w)
-        diffuse = self.diffuse(x_diffuse) if x_diffuse is not None else albedo.new_zeros(shape)
-        specular = self.specular(x_specular) if x_specular is not None else albedo.new_zeros(shape)
-        color = reconstruct(diffuse, specular, albedo)
-        return {"diffuse": diffuse, "specular": specular, "color": color}
+    def forward(self, inputs: dict[str, torch.Tensor], context=None) -> dict[str, torch.Tensor]:
+        check_inputs(self, inputs)
+        out = {b: getattr(self, b)(inputs[b]) for b in self.branches if inputs.get(b) is not None}
+        color = self.input_spec.reconstruct(out, inputs)
+        for b in self.branches:  # a branch not run is zero in its own space
+            if b not in out:
+                out[b] = torch.zeros_like(color)
+        out["color"] = color
+        return out
 
 
-def _build(kind: str, cfg: dict) -> Denoiser:
-    config = cfg.pop("config", None)
-    if config is not None:
-        if cfg:
-            raise ValueError(f"create_model({kind!r}): pass either config= or keyword fields, not both ({sorted(cfg)})")
-        if not isinstance(config, BranchConfig):
-            config = BranchConfig(**dict(config))
-        return Denoiser(kind, config)
-    known = {f.name for f in fields(BranchConfig)}
-    unknown = sorted(set(cfg) - known)
-    if unknown:
-        raise ValueError(f"create_model({kind!r}): unknown config field(s) {unknown}; valid fields: {sorted(known)}")
-    return Denoiser(kind, BranchConfig(**cfg))
+def _build(kind: str, config: BranchConfig) -> Denoiser:
+    return Denoiser(kind, config)
 
 
-@register_model("kpcn")
-def kpcn(**cfg) -> Denoiser:
-    """Kernel-predicting denoiser; keyword fields of :class:`BranchConfig` (or ``config=``)."""
-    return _build("kpcn", cfg)
+@register_model("kpcn", config=BranchConfig)
+def kpcn(config: BranchConfig) -> Denoiser:
+    """Kernel-predicting denoiser (Bako et al. 2017); fields of :class:`BranchConfig`."""
+    return _build("kpcn", config)
 
 
-@register_model("dpcn")
-def dpcn(**cfg) -> Denoiser:
-    """Direct-prediction denoiser; keyword fields of :class:`BranchConfig` (or ``config=``).
+@register_model("dpcn", config=BranchConfig)
+def dpcn(config: BranchConfig) -> Denoiser:
+    """Direct-prediction denoiser; fields of :class:`BranchConfig`.
 
     ``kernel_size``, ``logit_scale``, ``padding_mode`` and ``init_sigma`` are accepted and unused.
     """
-    return _build("dpcn", cfg)
+    return _build("dpcn", config)
+
+
+register_weights("kpcn", "small", "kpcn_small.safetensors", default=True,
+                 description="KPCN 5x32, 5x5 convs, 11x11 kernels (configs/small.yaml), 44 procedural scenes")
+register_weights("dpcn", "small", "dpcn_small.safetensors",
+                 description="DPCN 5x32, 5x5 convs (configs/small_dpcn.yaml), 44 procedural scenes")

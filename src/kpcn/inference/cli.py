@@ -1,0 +1,97 @@
+"""``python -m kpcn.inference`` (installed as ``kpcn-denoise``): denoise EXR files.
+
+::
+
+    kpcn-denoise in.exr [more.exr ...] [-o out.exr | --out-dir DIR] [--model NAME_OR_FILE]
+                 [--tile N] [--device cpu] [--trust-checkpoint]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+from pathlib import Path
+
+import torch
+
+from ..checkpoint import CheckpointError
+from ..config import ConfigError
+from ..io import ExrError, MissingLayerError
+from ..models import list_weights
+from .pipeline import denoise_result
+from .weights import DEFAULT_MODEL, describe, load_model
+
+__all__ = ["main"]
+
+
+def _default_out(path: Path, out_dir: str | None) -> Path:
+    name = f"{path.stem}_denoised.exr"
+    return Path(out_dir) / name if out_dir else path.with_name(name)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="kpcn-denoise",
+        description="Denoise multi-layer EXR renders with a kpcn model. "
+        "Writes <name>_denoised.exr next to each input unless -o or --out-dir is given.",
+    )
+    p.add_argument("inputs", nargs="+", help="noisy multi-layer EXR files")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-o", "--out", help="output EXR (only with a single input)")
+    g.add_argument("--out-dir", help="folder for the outputs (<name>_denoised.exr)")
+    p.add_argument("--model", default=None,
+                   help=f"weights file (.safetensors, or a .pt training checkpoint) or a shipped model name "
+                        f"(default: {DEFAULT_MODEL}; shipped: {', '.join(list_weights())})")
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="allow a .pt checkpoint that only full unpickling can load; unpickling runs any code "
+                        "the file contains, so use this only for files you trust (kpcn's own files never need it)")
+    p.add_argument("--tile", type=int, default=256, help="tile size in pixels, 0 = whole frame (default 256)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto)")
+    p.add_argument("--half", action="store_true", help="float16 autocast (CUDA only)")
+    p.add_argument("--no-skip", action="store_true", help="run the network on every tile and branch")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
+    args = p.parse_args(argv)
+    if args.out and len(args.inputs) > 1:
+        p.error("-o/--out takes a single input; use --out-dir for several")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    try:
+        net = load_model(args.model, args.device, trust_pickle=args.trust_checkpoint)
+    except (FileNotFoundError, CheckpointError, ConfigError, ValueError, TypeError, RuntimeError) as exc:
+        print(f"kpcn-denoise: cannot load the model: {exc}", file=sys.stderr)
+        return 2
+    dev = next(net.parameters()).device
+    print(f"model: {describe(net)}, inputs {net.input_spec.name}, receptive radius {net.receptive_radius}, "
+          f"tile {args.tile}, device {dev}", flush=True)
+
+    failures: list[tuple[str, str]] = []
+    for inp in args.inputs:
+        src = Path(inp)
+        dst = Path(args.out) if args.out else _default_out(src, args.out_dir)
+        try:
+            if src.exists() and dst.exists() and os.path.samefile(src, dst):
+                raise ValueError(f"output {dst} is the input file; choose another -o/--out-dir")
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                res = denoise_result(src, net, dst, tile=args.tile, device=args.device, half=args.half,
+                                     skip=not args.no_skip)
+            for wmsg in caught:
+                print(f"warning: {wmsg.message}", file=sys.stderr)
+        except (MissingLayerError, ExrError, FileNotFoundError, ValueError, OSError, RuntimeError) as exc:
+            print(f"FAILED {inp}: {exc}", file=sys.stderr, flush=True)
+            failures.append((inp, str(exc)))
+            continue
+        print(f"{inp} -> {dst}: {res.stats.seconds:.2f} s ({res.stats.summary()})", flush=True)
+    if failures:
+        print(f"\n{len(failures)} of {len(args.inputs)} file(s) failed:", file=sys.stderr)
+        for inp, msg in failures:
+            print(f"  {inp}: {msg}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,357 @@
+"""Denoise one frame: read, build the model's inputs tile by tile, run it, write.
+
+How a frame is processed
+------------------------
+* The file is read with :func:`kpcn.io.read_exr`, requiring the layers of the
+  model's input spec (a missing layer is named, with the layers found).
+  NaN/Inf are replaced and counted by the reader; a :class:`Frame` given in
+  memory is sanitised the same way (on a copy).
+* **Tiles with a halo** (:mod:`.tiling`): ``halo = model.receptive_radius +
+  spec.halo`` (the features read ``spec.halo`` pixels further: forward
+  differences), crop corners on multiples of ``model.alignment``. Each tile's
+  inputs are built from its crop (with whole-frame values where the spec needs
+  them: the depth normaliser); only the interior is kept. A model with
+  whole-frame context gets it computed once, over the whole frame
+  (:meth:`~kpcn.models.DenoiserModel.frame_context`), and every tile uses it.
+  So tiled equals untiled, to float rounding.
+* **What a frame does not need is left out** (``skip=True``, the default):
+
+  - a branch with no positive radiance anywhere in the frame is not run and
+    its inputs are not built (for a ``zero_preserving`` model — a kernel
+    predictor — this is exact; for DPCN the skipped component is 0, which is
+    the correct radiance there, where the network would add a small residual);
+  - ``zero_preserving`` models only, per tile: a branch that is zero on the
+    tile's crop is not run on that tile (exact);
+  - a tile whose crop has no geometry (depth <= 0) and converged colour
+    (variance of the mean <= ``(PASSTHROUGH_REL_STD * colour)^2``) is passed
+    through (needs depth and a colour variance in the file).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from ..io import Frame, read_exr, sanitize_layers, write_exr
+from .tiling import plan_tiles, tile_size
+from .weights import describe, load_model, resolve_device
+
+__all__ = ["denoise", "denoise_result", "DenoiseResult", "DenoiseStats", "PASSTHROUGH_REL_STD", "peak_rss_mb"]
+
+#: a no-hit tile is passed through when every pixel's standard error is at most this fraction of its colour
+PASSTHROUGH_REL_STD = 1e-3
+
+_THREE_CHANNEL = ("color", "diffuse", "specular", "albedo", "normal")
+
+
+@dataclass
+class DenoiseStats:
+    """What one :func:`denoise_result` call did and how long it took.
+
+    Attributes:
+        seconds: wall time of the denoising (inputs, network, assembly), without reading or writing files.
+        read_seconds, write_seconds: time spent reading the input / writing the output EXR.
+        size: ``(H, W)`` of the frame.
+        tile, halo, alignment: interior tile size, halo and crop alignment in pixels.
+        tiles: number of tiles; tiles_run: tiles on which at least one branch ran.
+        tiles_passed_through: no-hit, converged tiles whose output is the noisy colour.
+        tiles_zero: tiles with every branch zero (output exactly 0; nothing run).
+        tiles_fp32_fallback: ``half=True`` only: tiles re-run in float32 because float16 overflowed.
+        branches_skipped: branches not run anywhere because their colour is zero over the whole frame.
+        branch_tiles_run / branch_tiles_skipped: per branch, tiles on which it ran / was left out.
+        frame_context_seconds: time spent on the whole-frame context (models that use one).
+        device: where the network ran.
+        peak_rss_mb: the process's peak resident memory after the call (an upper bound for this call).
+        peak_cuda_mb: peak CUDA memory allocated by torch during the call (CUDA only).
+        nonfinite: NaN/Inf values replaced per layer (by the reader or here).
+    """
+
+    seconds: float = 0.0
+    read_seconds: float = 0.0
+    write_seconds: float = 0.0
+    size: tuple[int, int] = (0, 0)
+    tile: int = 0
+    halo: int = 0
+    alignment: int = 1
+    tiles: int = 0
+    tiles_run: int = 0
+    tiles_passed_through: int = 0
+    tiles_zero: int = 0
+    tiles_fp32_fallback: int = 0
+    branches_skipped: tuple[str, ...] = ()
+    branch_tiles_run: dict[str, int] = field(default_factory=dict)
+    branch_tiles_skipped: dict[str, int] = field(default_factory=dict)
+    frame_context_seconds: float = 0.0
+    device: str = "cpu"
+    peak_rss_mb: float | None = None
+    peak_cuda_mb: float | None = None
+    nonfinite: dict[str, int] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        h, w = self.size
+        parts = [f"{w}x{h}", f"{self.seconds:.2f} s", f"tiles run {self.tiles_run}/{self.tiles}"]
+        if self.tiles_passed_through:
+            parts.append(f"passed through {self.tiles_passed_through}")
+        if self.tiles_zero:
+            parts.append(f"zero {self.tiles_zero}")
+        if self.branches_skipped:
+            parts.append(f"branch skipped: {', '.join(self.branches_skipped)}")
+        else:
+            partial = [f"{b} on {self.branch_tiles_run[b]}/{self.tiles}" for b in self.branch_tiles_run
+                       if self.branch_tiles_skipped.get(b)]
+            if partial:
+                parts.append("ran " + ", ".join(partial))
+        return ", ".join(parts)
+
+
+@dataclass
+class DenoiseResult:
+    """Denoised colour ``(H, W, 3)`` float32, the stats, and the model's description."""
+
+    color: np.ndarray
+    stats: DenoiseStats
+    model_name: str = ""
+    out_path: str | None = None
+
+
+def _as_frame(src, layers) -> tuple[Frame, float]:
+    """A sanitised frame with ``layers``, and the seconds spent reading it."""
+    t0 = time.perf_counter()
+    if isinstance(src, (str, os.PathLike)):
+        frame = read_exr(src, require=layers)
+        return frame, time.perf_counter() - t0
+    if isinstance(src, Frame):
+        frame = Frame(dict(src.layers), dict(src.meta), src.path, dict(src.nonfinite))
+    elif isinstance(src, Mapping):
+        frame = Frame({k: np.asarray(v) for k, v in src.items()})
+    else:
+        raise TypeError(f"denoise: expected an EXR path, a Frame or a dict of layers, got {type(src).__name__}")
+    frame.require(layers)
+    for name, arr in list(frame.layers.items()):
+        a = np.asarray(arr)
+        if a.ndim == 2:
+            a = a[..., None]
+        frame.layers[name] = a if a.dtype == np.float32 else a.astype(np.float32)
+    counts = sanitize_layers(frame.layers)  # on the copied dict: the caller's arrays are untouched
+    if counts:
+        frame.nonfinite = {**frame.nonfinite, **counts}
+        warnings.warn(
+            f"{frame.path or 'frame'}: replaced non-finite values ({', '.join(f'{k}: {v}' for k, v in counts.items())})",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    return frame, time.perf_counter() - t0
+
+
+def _validate(frame: Frame, layers) -> tuple[int, int]:
+    h, w = frame[layers[0]].shape[:2]
+    extra = tuple(n for n in ("color", "colorVariance") if n in frame and n not in layers)
+    for name in tuple(layers) + extra:
+        a = frame[name]
+        if a.ndim != 3 or a.shape[:2] != (h, w):
+            raise ValueError(f"{frame.path or 'frame'}: layer {name!r} has shape {a.shape}, expected ({h}, {w}, C)")
+        if name in _THREE_CHANNEL and a.shape[2] != 3:
+            raise ValueError(f"{frame.path or 'frame'}: layer {name!r} must have 3 channels, got {a.shape[2]}")
+    if h == 0 or w == 0:
+        raise ValueError(f"{frame.path or 'frame'}: empty image ({w}x{h})")
+    return h, w
+
+
+def _noisy_color(frame: Frame) -> np.ndarray:
+    if "color" in frame and frame["color"].shape[2] == 3:
+        return frame["color"]
+    return frame["diffuse"] + frame["specular"]
+
+
+def _color_variance(frame: Frame) -> np.ndarray | None:
+    if "colorVariance" in frame:
+        return frame["colorVariance"]
+    if "diffuseVariance" in frame and "specularVariance" in frame:
+        return frame["diffuseVariance"] + frame["specularVariance"]
+    return None
+
+
+def _tensors(frame: Frame, names, crop, device: torch.device) -> dict[str, torch.Tensor]:
+    out = {}
+    for n in names:
+        a = frame[n][crop]
+        out[n] = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].to(device, non_blocking=True)
+    return out
+
+
+def _autocast(half: bool):
+    return torch.autocast("cuda", dtype=torch.float16) if half else contextlib.nullcontext()
+
+
+def peak_rss_mb() -> float | None:
+    """The process's peak resident memory (``VmHWM``) in MiB."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    try:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    except Exception:  # pragma: no cover - non-POSIX
+        return None
+
+
+def denoise_result(
+    exr_path_or_frame,
+    model=None,
+    out_path: str | os.PathLike | None = None,
+    *,
+    tile: int | None = 256,
+    device: str | torch.device = "auto",
+    half: bool = False,
+    skip: bool = True,
+    trust_pickle: bool = False,
+) -> DenoiseResult:
+    """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour and :class:`DenoiseStats`)."""
+    if tile is not None and (isinstance(tile, bool) or int(tile) != tile):
+        raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame), got {tile!r}")
+    dev = resolve_device(device)
+    net = load_model(model, dev, trust_pickle=trust_pickle)
+    spec = net.input_spec
+    frame, read_s = _as_frame(exr_path_or_frame, spec.layers)
+    h, w = _validate(frame, spec.layers)
+    halo = int(net.receptive_radius) + spec.halo
+    align = int(net.alignment)
+    use_half = bool(half) and dev.type == "cuda"
+    if half and not use_half:
+        warnings.warn("denoise: half=True is only used on CUDA; running float32 on the CPU", RuntimeWarning, stacklevel=2)
+
+    stats = DenoiseStats(size=(h, w), tile=tile_size(tile, align) or max(h, w), halo=halo, alignment=align,
+                         device=str(dev), read_seconds=read_s, nonfinite=dict(frame.nonfinite),
+                         branch_tiles_run={b: 0 for b in spec.branches},
+                         branch_tiles_skipped={b: 0 for b in spec.branches})
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    t0 = time.perf_counter()
+
+    active = [b for b in spec.branches if not (skip and spec.branch_is_zero(frame, b))]
+    stats.branches_skipped = tuple(b for b in spec.branches if b not in active)
+    depth_scale = spec.frame_depth_scale(frame)
+    depth_scale = depth_scale.to(dev) if depth_scale is not None else None
+    color_in = _noisy_color(frame)
+    var_in = _color_variance(frame) if skip and "depth" in frame else None
+
+    out = np.empty((h, w, 3), dtype=np.float32)
+    with torch.inference_mode():
+        context = None
+        if net.uses_frame_context and active:
+            tc = time.perf_counter()
+            whole = (slice(None), slice(None))
+            full = spec.build(_tensors(frame, spec.layers_for(active), whole, dev), depth_scale, active)
+            with _autocast(use_half):
+                context = net.frame_context(full)
+            del full
+            stats.frame_context_seconds = time.perf_counter() - tc
+        for t in plan_tiles(h, w, tile, halo, align):
+            stats.tiles += 1
+            crop = t.crop
+            if var_in is not None and not np.any(frame["depth"][crop] > 0):
+                if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * color_in[crop])):
+                    out[t.interior] = np.maximum(color_in[t.interior], 0.0)
+                    stats.tiles_passed_through += 1
+                    for b in spec.branches:
+                        stats.branch_tiles_skipped[b] += 1
+                    continue
+            run = list(active)
+            if skip and net.zero_preserving:
+                run = [b for b in active if not spec.branch_is_zero(frame, b, crop)]
+            for b in spec.branches:
+                stats.branch_tiles_run[b] += b in run
+                stats.branch_tiles_skipped[b] += b not in run
+            if not run:  # every component is zero
+                out[t.interior] = 0.0
+                stats.tiles_zero += 1
+                continue
+            inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), depth_scale, run)
+            with _autocast(use_half):
+                res = net(inputs, context)
+            if use_half and not torch.isfinite(res["color"]).all():
+                res = net(inputs, context)  # float16 overflowed: this tile again in float32
+                stats.tiles_fp32_fallback += 1
+            iy, ix = t.interior_in_crop
+            out[t.interior] = res["color"][0, :, iy, ix].float().permute(1, 2, 0).cpu().numpy()
+            stats.tiles_run += 1
+            del inputs, res
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+        stats.peak_cuda_mb = torch.cuda.max_memory_allocated(dev) / 2**20
+    stats.seconds = time.perf_counter() - t0
+    stats.peak_rss_mb = peak_rss_mb()
+
+    result = DenoiseResult(out, stats, describe(net))
+    if out_path is not None:
+        t1 = time.perf_counter()
+        _write_output(out_path, out, frame, result)
+        stats.write_seconds = time.perf_counter() - t1
+        result.out_path = os.fspath(out_path)
+    return result
+
+
+def _write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResult) -> None:
+    layers = {"color": color}
+    for name in ("albedo", "normal", "depth"):
+        if name in frame:
+            layers[name] = frame[name]
+    meta = {k: v for k, v in frame.meta.items() if k in ("spp", "seed", "scene", "renderTimeSeconds")}
+    meta.update(
+        {
+            "source": os.path.abspath(frame.path) if frame.path else "<in-memory frame>",
+            "denoiser": result.model_name,
+            "denoiseSeconds": float(result.stats.seconds),
+        }
+    )
+    write_exr(out_path, layers, meta)
+
+
+def denoise(
+    exr_path_or_frame,
+    model=None,
+    out_path: str | os.PathLike | None = None,
+    *,
+    tile: int | None = 256,
+    device: str | torch.device = "auto",
+    half: bool = False,
+    skip: bool = True,
+    trust_pickle: bool = False,
+) -> np.ndarray:
+    """Denoise one render and return its colour ``(H, W, 3)`` float32 (finite, >= 0).
+
+    Args:
+        exr_path_or_frame: a multi-layer EXR path, a :class:`~kpcn.io.Frame`, or a
+            dict of ``(H, W, C)`` layers; it must have the layers of the model's input spec.
+        model: ``None`` (shipped default), a model name (``"kpcn"``, ``"dpcn:small"``),
+            a weights/checkpoint path, or a :class:`~kpcn.models.DenoiserModel`
+            (see :func:`kpcn.inference.load_model`).
+        out_path: if given, also write an EXR (atomically): the denoised colour as
+            ``R G B``, the input's ``albedo``/``normal``/``depth``, and header
+            attributes ``source``, ``denoiser``, ``denoiseSeconds`` (and the input's
+            ``spp``, ``seed``, ``scene``).
+        tile: interior tile size in pixels (rounded up to the model's alignment);
+            ``None`` or ``0``: the whole frame at once.
+        device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"``, ...
+        half: float16 autocast on CUDA (ignored, with a warning, on the CPU).
+        skip: leave out zero branches, zero tiles and no-hit converged tiles
+            (see the module docstring); ``False`` runs the network everywhere.
+        trust_pickle: allow a ``.pt`` checkpoint that needs full unpickling (runs its code).
+
+    Raises:
+        MissingLayerError: the input lacks layers the model needs (names them and those found).
+        ExrError / FileNotFoundError: unreadable or missing file; CheckpointError: unusable weights.
+    """
+    return denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
+                          trust_pickle=trust_pickle).color

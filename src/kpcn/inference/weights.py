@@ -1,0 +1,105 @@
+"""Which model a denoise call means: shipped weights, a file, or a module in memory.
+
+``model`` may be
+
+* ``None`` — the default model's shipped weights (:data:`DEFAULT_MODEL`);
+* a registered model name, ``"kpcn"``, or ``"name:tag"`` (``"kpcn:small"``) —
+  the weights registered beside that model (:func:`kpcn.models.register_weights`);
+* a path — a ``.safetensors`` weights file, or a training state / older
+  ``.pt`` checkpoint (loaded with ``weights_only=True`` unless ``trust_pickle``);
+* a :class:`~kpcn.models.DenoiserModel`.
+
+There is no fallback to random weights: when nothing is shipped, the error says
+how to train some. Models loaded from files are cached per (path, mtime, size,
+device) and shared between calls: do not modify them.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..checkpoint import load_model_file
+from ..models import DenoiserModel, is_model, list_models, list_weights, weights_entry
+
+__all__ = ["DEFAULT_MODEL", "DefaultWeightsMissing", "load_model", "resolve_weights", "resolve_device", "describe"]
+
+#: the model ``denoise(path)`` uses when none is given (its default shipped weights)
+DEFAULT_MODEL = "kpcn"
+
+HOW_TO_GET_WEIGHTS = (
+    "train a model with `python -m kpcn.train --config configs/small.yaml` and pass its weights "
+    "(model='results/small/model.safetensors'; --model on the command line)"
+)
+
+
+class DefaultWeightsMissing(FileNotFoundError):
+    """No shipped weights were found for the requested model."""
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    if device is None or (isinstance(device, str) and device == "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device {device!r} requested but CUDA is not available; use device='cpu'")
+    return dev
+
+
+def resolve_weights(model=None) -> Path:
+    """The weights file meant by ``model`` (None, ``"name"``, ``"name:tag"`` or a path)."""
+    if model is None:
+        model = DEFAULT_MODEL
+    text = os.fspath(model)
+    path = Path(text)
+    if path.is_file():
+        return path
+    name, _, tag = str(text).partition(":")
+    if is_model(name):
+        try:
+            entry = weights_entry(name, tag or None)
+        except KeyError as exc:
+            raise DefaultWeightsMissing(f"{exc.args[0]}; {HOW_TO_GET_WEIGHTS}") from None
+        if not entry.path.is_file():
+            raise DefaultWeightsMissing(f"shipped weights {name}:{entry.tag} are registered but {entry.path} is "
+                                        f"missing; {HOW_TO_GET_WEIGHTS}")
+        return entry.path
+    raise FileNotFoundError(
+        f"{text}: neither a weights file nor a registered model name (models: {', '.join(list_models())}; "
+        f"shipped weights: {', '.join(list_weights()) or 'none'})"
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cached(path: str, mtime_ns: int, size: int, device: str, trust_pickle: bool) -> nn.Module:
+    model = load_model_file(path, trust_pickle=trust_pickle)
+    model.eval().requires_grad_(False)
+    model._kpcn_source = path  # for the output's metadata
+    return model.to(device)
+
+
+def load_model(model=None, device: str | torch.device = "auto", trust_pickle: bool = False) -> DenoiserModel:
+    """The denoiser meant by ``model`` (see the module docstring), in eval mode on ``device``.
+
+    Raises:
+        DefaultWeightsMissing: no shipped weights for ``None`` / a model name (says how to get some).
+        FileNotFoundError: ``model`` is neither a file nor a registered name.
+        kpcn.checkpoint.CheckpointError: the file is not a usable checkpoint (names it and why).
+    """
+    dev = resolve_device(device)
+    if isinstance(model, nn.Module):
+        if not isinstance(model, DenoiserModel):
+            raise TypeError(f"denoise: model must be a kpcn DenoiserModel (see kpcn.models), got {type(model).__name__}")
+        return model.to(dev).eval()
+    path = resolve_weights(model)
+    st = path.stat()
+    return _load_cached(str(path.resolve()), st.st_mtime_ns, st.st_size, str(dev), bool(trust_pickle))
+
+
+def describe(model: nn.Module) -> str:
+    src = getattr(model, "_kpcn_source", None)
+    name = getattr(model, "name", "") or type(model).__name__
+    return f"{name} ({Path(src).name})" if src else f"{name} (in-memory)"

@@ -1,0 +1,220 @@
+"""Input specifications: which EXR layers a model reads and how they become its tensors.
+
+A model names its input spec (``model.input_spec``); everything else — the
+layers :func:`kpcn.io.read_exr` must find, the features the data set builds,
+the training targets, which tiles can be skipped, how the denoised components
+add up to the colour — follows from the spec. Adding an input layout is one
+:func:`register_input_spec` call.
+
+Every spec turns ``(B, C, H, W)`` layer tensors into a dict with one tensor per
+*branch* (the components the model denoises separately; channels 0..2 of each
+are the noisy colour its kernels filter) plus ``albedo``:
+
+============================  =========================  =========  =======================================
+spec                          branches                   channels   layers read
+============================  =========================  =========  =======================================
+``kpcn_split``                ``diffuse``, ``specular``  27 each    diffuse, specular, albedo, normal, depth
+                                                                    and the variances of all five
+``split_novar``               ``diffuse``, ``specular``  23 each    diffuse, specular, albedo, normal, depth
+``color_albedo_normal``       ``color``                  9          color, albedo, normal (OIDN's inputs)
+============================  =========================  =========  =======================================
+
+The split specs use the KPCN transforms (DESIGN: ``diffuse / (albedo + eps)``
+and ``log1p(specular)``, gradients as forward differences; see
+:mod:`kpcn.features`); ``color_albedo_normal`` keeps the radiance linear
+(clamped at 0) beside the albedo and normal.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+import torch
+
+from .constants import EPS
+from .features import branch_features, depth_scale_of
+
+__all__ = [
+    "InputSpec",
+    "SPECULAR_LOG_MAX",
+    "register_input_spec",
+    "get_input_spec",
+    "list_input_specs",
+    "split_reconstruct",
+    "finite_nonneg",
+]
+
+#: Upper clamp of the specular branch output (log1p space) before ``expm1``;
+#: ``expm1(80) ~ 5.5e34`` is finite in float32.
+SPECULAR_LOG_MAX = 80.0
+
+Tensors = dict[str, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """How EXR layers become a model's inputs, targets and output colour.
+
+    Attributes:
+        name: registry name.
+        description: one line for ``--help`` and errors.
+        layers: EXR layers a noisy input must have.
+        branches: names of the components denoised separately (their tensors
+            are keys of the built inputs; outputs carry the same keys).
+        channels: channels of each branch tensor.
+        branch_layers: per branch, the layers only that branch reads (a branch
+            whose layers are zero over a region is zero there).
+        halo: pixels beyond a pixel that its features read (1: forward differences).
+        uses_depth_scale: the features divide depth by the whole frame's largest
+            depth (tiles must be given that value).
+        target_layers: layers a reference render must have.
+        build: ``build(buffers, depth_scale, branches) -> inputs``; ``branches``
+            lists those to build (the others are absent from the result).
+        targets: ``targets(reference_buffers, inputs) -> {"y_<branch>", "y_color"}``.
+        reconstruct: ``reconstruct(outputs, inputs) -> (B, 3, H, W)`` colour from
+            the denoised branches (a branch missing from ``outputs`` is zero).
+    """
+
+    name: str
+    description: str
+    layers: tuple[str, ...]
+    branches: tuple[str, ...]
+    channels: int
+    branch_layers: Mapping[str, tuple[str, ...]]
+    halo: int
+    uses_depth_scale: bool
+    target_layers: tuple[str, ...]
+    build: Callable[..., Tensors] = field(repr=False)
+    targets: Callable[[Tensors, Tensors], Tensors] = field(repr=False)
+    reconstruct: Callable[[Tensors, Tensors], torch.Tensor] = field(repr=False)
+
+    def layers_for(self, branches) -> tuple[str, ...]:
+        """The layers needed to build only ``branches``."""
+        skip = {n for b in self.branches if b not in branches for n in self.branch_layers[b]}
+        return tuple(n for n in self.layers if n not in skip)
+
+    def frame_depth_scale(self, frame) -> torch.Tensor | None:
+        """The whole frame's depth normaliser ``(1, 1, 1, 1)`` (None if the spec does not use depth)."""
+        if not self.uses_depth_scale:
+            return None
+        depth = torch.from_numpy(np.ascontiguousarray(frame["depth"][..., 0])).clamp_min(0.0)[None, None]
+        return depth_scale_of(depth)
+
+    def branch_is_zero(self, frame, branch: str, crop=(slice(None), slice(None))) -> bool:
+        """Whether ``branch`` has no positive radiance in ``frame`` over ``crop`` (its output is then 0)."""
+        return not np.any(frame[self.branch_layers[branch][0]][crop] > 0)
+
+
+_SPECS: dict[str, InputSpec] = {}
+
+
+def register_input_spec(spec: InputSpec) -> InputSpec:
+    if spec.name in _SPECS and _SPECS[spec.name] != spec:
+        raise ValueError(f"an input spec named {spec.name!r} is already registered")
+    _SPECS[spec.name] = spec
+    return spec
+
+
+def get_input_spec(name: str | InputSpec) -> InputSpec:
+    """The spec registered as ``name`` (an :class:`InputSpec` is returned as is)."""
+    if isinstance(name, InputSpec):
+        return name
+    try:
+        return _SPECS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown input spec {name!r}; known: {', '.join(sorted(_SPECS))}") from None
+
+
+def list_input_specs() -> list[str]:
+    return sorted(_SPECS)
+
+
+# ----------------------------------------------------------------------------- shared maths
+
+
+def finite_nonneg(color: torch.Tensor) -> torch.Tensor:
+    """NaN -> 0, +Inf -> the dtype's largest value, then clamped at 0."""
+    big = torch.finfo(color.dtype).max
+    return torch.nan_to_num(color, nan=0.0, posinf=big, neginf=0.0).clamp(min=0.0)
+
+
+def _clean(x: torch.Tensor) -> torch.Tensor:
+    return torch.nan_to_num(x.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+
+
+def split_reconstruct(outputs: Tensors, inputs: Tensors) -> torch.Tensor:
+    """``(albedo + EPS) * max(diffuse, 0) + expm1(clamp(specular, 0, SPECULAR_LOG_MAX))``, finite and >= 0.
+
+    A branch missing from ``outputs`` (not run: zero radiance) contributes 0.
+    """
+    albedo = inputs["albedo"]
+    color = torch.zeros_like(albedo)
+    if outputs.get("diffuse") is not None:
+        color = color + (albedo + EPS) * outputs["diffuse"].clamp(min=0)
+    if outputs.get("specular") is not None:
+        color = color + torch.expm1(outputs["specular"].clamp(0.0, SPECULAR_LOG_MAX))
+    return finite_nonneg(color)
+
+
+def _split_targets(ref: Tensors, inputs: Tensors) -> Tensors:
+    """Targets in each branch's space; the diffuse one against the *input's* albedo (reconstruction uses it)."""
+    d, s = _clean(ref["diffuse"]), _clean(ref["specular"])
+    return {"y_diffuse": d / (inputs["albedo"] + EPS), "y_specular": torch.log1p(s), "y_color": d + s}
+
+
+_SPLIT_BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
+_AUX = ("albedo", "normal", "depth")
+
+
+def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
+    branch_layers = {b: ls if variances else ls[:1] for b, ls in _SPLIT_BRANCH_LAYERS.items()}
+    layers = ("diffuse", "specular") + _AUX
+    if variances:
+        layers += tuple(f"{n}Variance" for n in layers)
+
+    def build(buffers, depth_scale=None, branches=("diffuse", "specular")):
+        return branch_features(buffers, depth_scale, branches, variances=variances)
+
+    return InputSpec(
+        name=name, description=description, layers=layers, branches=("diffuse", "specular"),
+        channels=27 if variances else 23, branch_layers=branch_layers, halo=1, uses_depth_scale=True,
+        target_layers=("diffuse", "specular"), build=build, targets=_split_targets, reconstruct=split_reconstruct,
+    )
+
+
+KPCN_SPLIT = register_input_spec(_split_spec(
+    "kpcn_split", True, "diffuse/specular split with per-pixel variances (Bako et al. 2017; 27 channels a branch)"))
+SPLIT_NOVAR = register_input_spec(_split_spec(
+    "split_novar", False, "diffuse/specular split without variances (renderers with no variance pass; 23 channels a branch)"))
+
+
+def _can_build(buffers, depth_scale=None, branches=("color",)):
+    missing = [n for n in ("color", "albedo", "normal") if n not in buffers]
+    if missing:
+        raise KeyError(f"color_albedo_normal: missing buffers {missing}; got {sorted(buffers)}")
+    albedo = _clean(buffers["albedo"])
+    out = {"albedo": albedo}
+    if "color" in branches:
+        normal = torch.nan_to_num(buffers["normal"].float(), nan=0.0, posinf=0.0, neginf=0.0)
+        out["color"] = torch.cat([_clean(buffers["color"]), albedo, normal], dim=1)
+    return out
+
+
+def _can_targets(ref: Tensors, inputs: Tensors) -> Tensors:
+    c = _clean(ref["color"])
+    return {"y_color": c}
+
+
+def _can_reconstruct(outputs: Tensors, inputs: Tensors) -> torch.Tensor:
+    c = outputs.get("color")
+    return finite_nonneg(c) if c is not None else torch.zeros_like(inputs["albedo"])
+
+
+COLOR_ALBEDO_NORMAL = register_input_spec(InputSpec(
+    name="color_albedo_normal",
+    description="colour + albedo + normal, no split and no variances (what OIDN takes; 9 channels)",
+    layers=("color", "albedo", "normal"), branches=("color",), channels=9, branch_layers={"color": ("color",)},
+    halo=0, uses_depth_scale=False, target_layers=("color",), build=_can_build, targets=_can_targets,
+    reconstruct=_can_reconstruct,
+))

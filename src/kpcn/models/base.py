@@ -1,0 +1,114 @@
+"""The model contract every kpcn denoiser follows.
+
+A model is an ``nn.Module`` subclass of :class:`DenoiserModel`, built from a
+config dataclass by the registry (:mod:`kpcn.models.registry`). What the rest
+of the library (training, denoising, tiling, report, bench) knows about a
+model is only what it declares here:
+
+* ``input_spec`` — the :class:`~kpcn.inputs.InputSpec` its inputs follow (which
+  EXR layers it reads, its branches, how they add up to the colour);
+* ``receptive_radius`` — how many pixels on each side an output pixel depends
+  on through local operations (the halo a tile needs);
+* ``uses_frame_context`` — whether it also uses a summary of the whole frame
+  (then :meth:`frame_context` computes it once and tiles share it);
+* ``alignment`` — tiles (and crops) must start at multiples of it (a U-Net
+  with ``n`` 2× downsamplings needs ``2**n``); the model pads its own input
+  at the bottom/right to a multiple of it;
+* ``zero_preserving`` — a branch whose noisy colour is zero over the
+  receptive radius gives exactly zero (kernel predictors: a convex
+  combination of zeros is zero), so tiles or frames where it is zero may skip
+  it without changing the result.
+
+``forward(inputs, context=None)`` takes the dict an input spec builds
+(``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
+absent is zero and not run) and returns ``{branch: (B, 3, H, W), ...,
+"color": (B, 3, H, W)}``: each branch in its own (feature) space and the
+final radiance, finite and non-negative.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..inputs import InputSpec, get_input_spec
+
+__all__ = ["DenoiserModel", "check_inputs"]
+
+
+class DenoiserModel(nn.Module):
+    """Base class of registered denoisers (see the module docstring for the contract)."""
+
+    #: registry name, set by :func:`~kpcn.models.registry.create_model`
+    name: str = ""
+    #: a zero branch colour gives an exactly zero branch output
+    zero_preserving: bool = False
+    #: the model uses a whole-frame summary (see :meth:`frame_context`)
+    uses_frame_context: bool = False
+
+    def __init__(self, config: Any) -> None:
+        super().__init__()
+        self.config = config
+
+    # ------------------------------------------------------------------ declarations
+    @property
+    def input_spec(self) -> InputSpec:
+        return get_input_spec(self.config.input_spec)
+
+    @property
+    def branches(self) -> tuple[str, ...]:
+        return self.input_spec.branches
+
+    @property
+    def receptive_radius(self) -> int:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def alignment(self) -> int:
+        return 1
+
+    def hparams(self) -> dict:
+        """``{"name": ..., **config}``: ``create_model(**hparams())`` rebuilds the architecture."""
+        return {"name": self.name, **asdict(self.config)}
+
+    def extra_repr(self) -> str:
+        return (f"name={self.name!r}, input_spec={self.input_spec.name!r}, receptive_radius={self.receptive_radius}, "
+                f"alignment={self.alignment}, frame_context={self.uses_frame_context}")
+
+    # ------------------------------------------------------------------ computation
+    def frame_context(self, inputs: dict[str, torch.Tensor]) -> Any:
+        """Whole-frame context computed once per frame (``None`` for local models)."""
+        return None
+
+    def forward(self, inputs: dict[str, torch.Tensor], context: Any = None) -> dict[str, torch.Tensor]:  # pragma: no cover
+        raise NotImplementedError
+
+
+def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:
+    """Check ``inputs`` against the model's spec; returns ``(B, H, W)``.
+
+    Raises ``ValueError`` naming the model, the key and the shapes.
+    """
+    who = f"{type(model).__name__} ({model.input_spec.name})"
+    if not isinstance(inputs, dict):
+        raise ValueError(f"{who}: inputs must be a dict of tensors (keys {list(model.branches) + ['albedo']}), "
+                         f"got {type(inputs).__name__}")
+    albedo = inputs.get("albedo")
+    if not isinstance(albedo, torch.Tensor) or albedo.dim() != 4 or albedo.shape[1] != 3:
+        shape = tuple(albedo.shape) if isinstance(albedo, torch.Tensor) else type(albedo).__name__
+        raise ValueError(f"{who}: inputs['albedo'] must be a (B, 3, H, W) tensor, got {shape}")
+    b, _, h, w = albedo.shape
+    c = model.input_spec.channels
+    for name in model.branches:
+        x = inputs.get(name)
+        if x is None:
+            continue
+        if not isinstance(x, torch.Tensor) or x.dim() != 4 or x.shape[1] != c:
+            shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+            raise ValueError(f"{who}: inputs[{name!r}] must be a (B, {c}, H, W) tensor, got {shape}")
+        if (x.shape[0], x.shape[2], x.shape[3]) != (b, h, w):
+            raise ValueError(f"{who}: inputs[{name!r}] {tuple(x.shape)} and albedo {tuple(albedo.shape)} "
+                             "must agree in batch and spatial size")
+    return b, h, w

@@ -1,0 +1,100 @@
+"""The training run's configuration: ``model``, ``data`` and ``train`` sections.
+
+Loaded with :func:`kpcn.config.load_config` from ``configs/*.yaml``::
+
+    name: small
+    model: {name: kpcn, layers: 5, width: 32, conv_size: 5, kernel_size: 11, input_transform: log}
+    data: {root: data/train, patch_size: 65}
+    train: {stage1_steps: 1500, lr: 1.0e-3}
+
+``model`` is the registry name plus that model's own keys (checked against
+its config dataclass, e.g. :class:`kpcn.models.BranchConfig`: an unknown key
+names the nearest valid one).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .config import ConfigError, from_dict
+
+__all__ = ["RunConfig", "DataConfig", "TrainConfig", "check_model_section"]
+
+
+@dataclass
+class DataConfig:
+    root: str = "data/train"  #: folder written by `python -m kpcn.render dataset`
+    val_root: str | None = None  #: held-out frames; None: the last `val_scenes` scenes of root
+    val_scenes: int = 2
+    spp: list[int] | None = None  #: input spp to train on (None: all)
+    patch_size: int = 65
+    patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
+    sampling: str = "importance"
+    # the built-in default data set, rendered when `root` has no manifest and `render_if_missing`
+    render_if_missing: bool = True
+    render_scenes: int = 24
+    render_spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32])
+    render_ref_spp: int = 1024
+    render_resolution: list[int] = field(default_factory=lambda: [128, 128])
+    render_first_seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.sampling not in ("importance", "uniform"):
+            raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
+
+
+@dataclass
+class TrainConfig:
+    stage1_steps: int = 1000  #: every branch on its own target
+    stage2_steps: int = 500  #: joint fine-tuning on the final colour
+    batch_size: int = 4
+    lr: float = 1e-5
+    stage2_lr: float | None = None  #: None: same as lr
+    loss: str = "l1"
+    stage2_loss: str | None = None  #: None: same as loss
+    grad_clip: float = 1.0
+    val_every: int = 250
+    ckpt_every: int = 100
+    log_every: int = 10
+    seed: int = 0
+    threads: int | None = None  #: torch CPU threads (None: PyTorch's default)
+    device: str = "auto"  #: auto, cpu or cuda
+
+    def __post_init__(self) -> None:
+        from .losses import list_losses
+
+        for key in ("loss", "stage2_loss"):
+            v = getattr(self, key)
+            if v is not None and v not in list_losses():
+                raise ConfigError(f"train.{key}: unknown loss {v!r}; known: {', '.join(list_losses())}")
+
+
+def check_model_section(model: dict) -> dict:
+    """``model`` with older layouts flattened (``extra:``), checked against the model's config dataclass."""
+    from .models import is_model, list_models, model_config_class
+
+    model = dict(model)
+    model.update(model.pop("extra", None) or {})
+    name = model.get("name")
+    if not is_model(name):
+        raise ConfigError(f"model.name: unknown model {name!r}; known: {', '.join(list_models())}")
+    params = {k: v for k, v in model.items() if k != "name"}
+    from_dict(model_config_class(name), params, where="model")  # raises on an unknown key or a wrong type
+    return model
+
+
+@dataclass
+class RunConfig:
+    name: str = "default"
+    results_dir: str = "results"
+    model: dict = field(default_factory=lambda: {"name": "kpcn"})
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        self.model = check_model_section(self.model)
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.results_dir) / self.name
+
