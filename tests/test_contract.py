@@ -305,3 +305,24 @@ def test_malformed_checkpoint_contents_name_the_file(tmp_path):
     (tmp_path / "plain.pkl.pt").write_bytes(pickle.dumps({"model": 1}, protocol=4))
     with pytest.raises(CheckpointError, match=r"plain.pkl.pt: .*--trust-checkpoint"):
         load_model_file(tmp_path / "plain.pkl.pt")
+
+
+def test_command_configs_share_one_system(tmp_path, capsys):
+    """Bench, render-dataset and report settings: flags, --set and --config files, checked the same way."""
+    from kpcn.bench.denoise import DenoiseBenchConfig
+    from kpcn.config import parse_config
+    from kpcn.render.dataset import DatasetConfig
+    from kpcn.report import ReportConfig
+
+    f = tmp_path / "b.yaml"
+    f.write_text("models: [small_unet]\nspp: 8\n")
+    cfg = parse_config(DenoiseBenchConfig, ["--config", str(f), "--set", "tile=64", "--no-oidn", "--spp", "16"], "b")
+    assert (cfg.models, cfg.tile, cfg.oidn, cfg.spp, cfg.scene) == (["small_unet"], 64, False, 16, "random:3")
+    with pytest.raises(SystemExit) as err:
+        parse_config(DenoiseBenchConfig, ["--set", "tiel=64"], "b")
+    assert err.value.code == 2 and "tiel: unknown key; did you mean 'tile'" in capsys.readouterr().err
+    assert load_config(DatasetConfig, None, ["resolution=[32, 24]"]).resolution == (32, 24)
+    with pytest.raises(ConfigError, match="spp and ref_spp: every sample count must be >= 2"):
+        load_config(DatasetConfig, None, ["spp=[1, 4]"])
+    with pytest.raises(ConfigError, match="scenez: unknown key; did you mean 'scenes'"):
+        load_config(ReportConfig, None, ["scenez=[a]"])

@@ -46,6 +46,8 @@ __all__ = [
     "save_config",
     "add_config_args",
     "config_from_args",
+    "config_parser",
+    "parse_config",
 ]
 
 T = TypeVar("T")
@@ -292,7 +294,7 @@ def add_config_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add ``--config FILE`` and repeatable ``--set KEY=VALUE`` to a parser."""
     p.add_argument("--config", "-c", help="YAML config file (see configs/)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one config key, e.g. train.lr=3e-4 (value parsed as YAML); may be repeated")
+                   help="override one config key, e.g. train.lr=3e-4 or spp=[2,4] (value parsed as YAML); may be repeated")
     return p
 
 
@@ -308,3 +310,65 @@ def config_from_args(cls: type[T], args: argparse.Namespace, flags: dict | None 
             continue
         cfg = set_value(cfg, key, to_dict(value), where="option")
     return cfg
+
+
+def _flag_kwargs(f: dataclasses.Field, tp) -> dict:
+    """argparse keyword arguments for the field ``f`` of annotation ``tp`` (defaults stay in the dataclass)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        tp = inner[0] if len(inner) == 1 else str
+        origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if tp is bool:
+        return {"action": "store_const", "const": not f.default}
+    if origin in (list, tuple):
+        item = args[0] if args else str
+        nargs = len(args) if origin is tuple and args and args[-1] is not Ellipsis else "+"
+        return {"nargs": nargs, "type": item if item in (int, float, str) else str}
+    return {"type": tp if tp in (int, float, str) else str}
+
+
+def _default_text(f: dataclasses.Field) -> str:
+    if f.default is not dataclasses.MISSING:
+        v = f.default
+    elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        v = f.default_factory()  # type: ignore[misc]
+    else:
+        return ""
+    if v is None:
+        return ""
+    if isinstance(v, (list, tuple)):
+        v = " ".join(str(x) for x in v)
+    return f" (default: {v})"
+
+
+def config_parser(cls, prog: str, description: str = "") -> argparse.ArgumentParser:
+    """A parser with ``--config``, ``--set`` and one flag per field of the dataclass ``cls``.
+
+    ``field_name`` becomes ``--field-name`` (a boolean that defaults to true
+    becomes ``--no-field-name``); the help text is the field's ``metadata["help"]``.
+    Flags left out keep the value from the file, ``--set`` or the dataclass.
+    """
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    add_config_args(p)
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        kw = _flag_kwargs(f, hints[f.name])
+        flag = f.name.replace("_", "-")
+        if kw.get("action") == "store_const" and kw["const"] is False:
+            flag = f"no-{flag}"
+        help_text = f.metadata.get("help", "")
+        if kw.get("action") != "store_const":
+            help_text += _default_text(f)
+        p.add_argument(f"--{flag}", dest=f.name, default=None, help=help_text, **kw)
+    return p
+
+
+def parse_config(cls: type[T], argv, prog: str, description: str = "") -> T:
+    """``cls`` from a command line built by :func:`config_parser`; a bad value exits with one line (code 2)."""
+    p = config_parser(cls, prog, description)
+    args = p.parse_args(argv)
+    try:
+        return config_from_args(cls, args, {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})
+    except ConfigError as exc:
+        p.exit(2, f"{prog}: {exc}\n")

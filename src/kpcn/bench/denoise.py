@@ -19,6 +19,9 @@ import sys
 import time
 
 
+from dataclasses import dataclass, field
+
+from ..config import parse_config, to_dict
 from .common import _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
 
 # --------------------------------------------------------------------------- denoise
@@ -299,38 +302,52 @@ def _bench_denoise_skip(args) -> int:
     return 0
 
 
+@dataclass
+class DenoiseBenchConfig:
+    """``python -m kpcn.bench denoise`` settings (``--config``, ``--set`` or the flags)."""
+
+    sizes: list[str] | None = field(default=None, metadata={
+        "help": "frame sizes, N or WxH (default: 256 1024 1920x1080; --skip: 256)"})
+    models: list[str] = field(default_factory=lambda: ["small", "paper"], metadata={
+        "help": "configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
+                "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); --skip: the first"})
+    oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
+    tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default 256; --skip: 64)"})
+    scene: str = field(default="random:3", metadata={"help": "scene to render"})
+    spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
+    seed: int = 0
+    repeats: int | None = field(default=None, metadata={
+        "help": "runs per configuration; the first is the measured-memory one (default 1; --skip: 3)"})
+    timeout: float = field(default=300.0, metadata={"help": "seconds per configuration before it is stopped"})
+    threads: int | None = field(default=None, metadata={"help": "torch threads (default: torch's)"})
+    frames_dir: str | None = field(default=None, metadata={"help": "keep the rendered frames here (default: a temporary folder)"})
+    json: str | None = field(default=None, metadata={"help": "also write the raw results as JSON to this path"})
+    skip: bool = field(default=False, metadata={"help": "measure the time saved by skipping (see above)"})
+    scenes: list[str] = field(
+        default_factory=lambda: ["test:diffuse_box", "test:glass", "test:envmap_open", "test:no_hit"],
+        metadata={"help": "--skip: scenes to render"})
+    zero_specular: bool = field(default=False, metadata={
+        "help": "--skip: also run each scene with its specular buffers zeroed (a synthetic no-specular frame)"})
+
+
 def bench_denoise(argv: list[str]) -> int:
     """``python -m kpcn.bench denoise``: kpcn.denoise (small / paper configs) vs OIDN; ``--skip``: time saved by skipping."""
     import tempfile
 
-    p = argparse.ArgumentParser(
-        prog="python -m kpcn.bench denoise",
-        description="Seconds and peak memory of kpcn.denoise for model configs (random-init weights) against "
+    cfg = parse_config(
+        DenoiseBenchConfig, argv, "python -m kpcn.bench denoise",
+        "Seconds and peak memory of kpcn.denoise for model configs (random-init weights) against "
         "Intel OIDN on the same rendered frames; each configuration in a fresh subprocess (memory = peak RSS "
         "during the call minus RSS before it). With --skip: the time saved by leaving out zero branches, zero "
         "tiles and no-hit tiles (full vs skip in the same process).",
     )
-    p.add_argument("--sizes", type=_parse_size, nargs="+", default=None,
-                   help="frame sizes, N or WxH (default: 256 1024 1920x1080; --skip: 256)")
-    p.add_argument("--models", nargs="+", default=["small", "paper"],
-                   help="configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
-                   "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); default: small paper; --skip: the first")
-    p.add_argument("--no-oidn", action="store_true", help="leave out Intel OIDN")
-    p.add_argument("--tile", type=int, default=None, help="kpcn tile size (default 256; --skip: 64)")
-    p.add_argument("--scene", default="random:3", help="scene to render (default random:3)")
-    p.add_argument("--spp", type=int, default=4, help="samples per pixel of the rendered frames (default 4)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeats", type=int, default=None, help="runs per configuration; the first is the measured-memory one (default 1; --skip: 3)")
-    p.add_argument("--timeout", type=float, default=300.0, help="seconds per configuration before it is stopped (default 300)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    p.add_argument("--frames-dir", default=None, help="keep the rendered frames here (default: a temporary folder)")
-    p.add_argument("--json", default=None, metavar="PATH", help="also write the raw results as JSON")
-    p.add_argument("--skip", action="store_true", help="measure the time saved by skipping (see above)")
-    p.add_argument("--scenes", nargs="+", default=["test:diffuse_box", "test:glass", "test:envmap_open", "test:no_hit"],
-                   help="--skip: scenes to render (default: test:diffuse_box test:glass test:envmap_open test:no_hit)")
-    p.add_argument("--zero-specular", action="store_true",
-                   help="--skip: also run each scene with its specular buffers zeroed (a synthetic no-specular frame)")
-    args = p.parse_args(argv)
+    args = argparse.Namespace(**to_dict(cfg))
+    args.no_oidn = not cfg.oidn
+    try:
+        args.sizes = [_parse_size(x) for x in cfg.sizes] if cfg.sizes else None
+    except argparse.ArgumentTypeError as exc:
+        print(f"python -m kpcn.bench denoise: sizes: {exc}", file=sys.stderr)
+        return 2
     args.tile_given = args.tile is not None
     if args.skip:
         args.sizes = args.sizes or [(256, 256)]

@@ -29,7 +29,6 @@ gives stable numbers on a loaded machine.
 """
 
 
-import argparse
 import json
 import multiprocessing as mp
 import os
@@ -38,6 +37,9 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+
+from ..config import ConfigError, parse_config, to_dict
 
 
 from .common import _fmt_mb, _fmt_s, _mem_available_bytes, _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
@@ -125,7 +127,7 @@ def _unfold_bytes_needed(size: int, k: int, channels: int, batch: int, mode: str
     return 2 * cols + 2 * weights if mode == "fwd" else 4 * cols + 3 * weights
 
 
-def _run_config(impl: str, size: int, mode: str, args: argparse.Namespace) -> dict:
+def _run_config(impl: str, size: int, mode: str, args: "KernelBenchConfig") -> dict:
     ctx = mp.get_context("spawn")
     try:
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as ex:
@@ -138,32 +140,35 @@ def _run_config(impl: str, size: int, mode: str, args: argparse.Namespace) -> di
 
 
 
+@dataclass
+class KernelBenchConfig:
+    """``python -m kpcn.bench kernel`` settings (``--config``, ``--set`` or the flags)."""
+
+    sizes: list[int] = field(default_factory=lambda: [256, 1024], metadata={"help": "square image sizes"})
+    k: int = field(default=21, metadata={"help": "kernel size"})
+    channels: int = field(default=3, metadata={"help": "image channels C"})
+    batch: int = field(default=1, metadata={"help": "batch size B"})
+    repeats: int = field(default=3, metadata={"help": "timed runs after the first, measured one"})
+    threads: int | None = field(default=None, metadata={"help": "torch threads in the workers (default: torch's)"})
+    skip_unfold_above: int | None = field(default=None, metadata={
+        "help": "skip the unfold reference for sizes > N (default: run it where its estimated memory fits in "
+                "80%% of MemAvailable)"})
+    modes: list[str] = field(default_factory=lambda: ["fwd", "fwd+bwd"], metadata={"help": "fwd and/or fwd+bwd"})
+    json: str | None = field(default=None, metadata={"help": "also write the raw results as JSON to this path"})
+
+    def __post_init__(self) -> None:
+        if self.k < 1 or self.k % 2 == 0:
+            raise ConfigError(f"k: must be a positive odd integer, got {self.k}")
+        bad = [m for m in self.modes if m not in ("fwd", "fwd+bwd")]
+        if bad:
+            raise ConfigError(f"modes: unknown mode(s) {bad}; valid: fwd, fwd+bwd")
+
+
 def bench_kernel(argv: list[str]) -> int:
     """``python -m kpcn.bench kernel``: shift-loop kernel_apply vs the F.unfold reference."""
-    p = argparse.ArgumentParser(
-        prog="python -m kpcn.bench kernel",
-        description="Time and peak memory of kernel_apply (shift loop) vs the F.unfold reference; "
-        "each configuration in a fresh subprocess (see kpcn.bench docstring for the memory method).",
-    )
-    p.add_argument("--sizes", type=int, nargs="+", default=[256, 1024], help="square image sizes (default: 256 1024)")
-    p.add_argument("--k", type=int, default=21, help="kernel size (default: 21)")
-    p.add_argument("--channels", type=int, default=3, help="image channels C (default: 3)")
-    p.add_argument("--batch", type=int, default=1, help="batch size B (default: 1)")
-    p.add_argument("--repeats", type=int, default=3, help="timed runs after the first, measured one (default: 3)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads in the workers (default: torch's)")
-    p.add_argument(
-        "--skip-unfold-above",
-        type=int,
-        default=None,
-        metavar="N",
-        help="skip the unfold reference for sizes > N (default: run it where its estimated memory "
-        "fits in 80%% of MemAvailable)",
-    )
-    p.add_argument("--modes", nargs="+", choices=["fwd", "fwd+bwd"], default=["fwd", "fwd+bwd"])
-    p.add_argument("--json", default=None, metavar="PATH", help="also write the raw results as JSON")
-    args = p.parse_args(argv)
-    if args.k < 1 or args.k % 2 == 0:
-        p.error(f"--k must be a positive odd integer, got {args.k}")
+    args = parse_config(KernelBenchConfig, argv, "python -m kpcn.bench kernel",
+                        "Time and peak memory of kernel_apply (shift loop) vs the F.unfold reference; each "
+                        "configuration in a fresh subprocess (see kpcn.bench docstring for the memory method).")
 
     results: dict[tuple[str, int, str], dict] = {}
     for size in args.sizes:
@@ -210,7 +215,7 @@ def bench_kernel(argv: list[str]) -> int:
             print(f"{size:>6}  {mode:<7}  {_ratio(a, b, 'median_s'):>7}  {_ratio(a, b, 'mem_mb'):>7}")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"args": vars(args), "results": list(results.values())}, f, indent=2)
+            json.dump({"args": to_dict(args), "results": list(results.values())}, f, indent=2)
     return 0
 
 

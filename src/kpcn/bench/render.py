@@ -9,9 +9,11 @@ render (the warm-up pays the JIT compile).
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
+from dataclasses import dataclass, field
+
+from ..config import parse_config
 
 
 def _time_render(mi, scene, integrator, spp: int, repeats: int) -> float:
@@ -28,14 +30,20 @@ def _time_render(mi, scene, integrator, spp: int, repeats: int) -> float:
     return statistics.median(times)
 
 
+@dataclass
+class RenderBenchConfig:
+    """``python -m kpcn.bench render`` settings (``--config``, ``--set`` or the flags)."""
+
+    scenes: list[str] = field(default_factory=lambda: ["test:glossy", "random:5", "random:11"],
+                              metadata={"help": "scenes (XML files, test:<name>, random:<seed>)"})
+    resolution: tuple[int, int] = field(default=(256, 256), metadata={"help": "width height"})
+    spp: int = field(default=64, metadata={"help": "samples per pixel"})
+    max_depth: int = field(default=8, metadata={"help": "longest path"})
+    repeats: int = field(default=3, metadata={"help": "timed renders per scene and integrator (median)"})
+
+
 def bench_render(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="python -m kpcn.bench render", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenes", nargs="+", default=["test:glossy", "random:5", "random:11"])
-    p.add_argument("--resolution", type=int, nargs=2, default=[256, 256], metavar=("W", "H"))
-    p.add_argument("--spp", type=int, default=64)
-    p.add_argument("--max-depth", type=int, default=8)
-    p.add_argument("--repeats", type=int, default=3)
-    args = p.parse_args(argv)
+    args = parse_config(RenderBenchConfig, argv, "python -m kpcn.bench render", __doc__.split("\n\n")[0])
 
     from ..render import ensure_variant, load_scene
 

@@ -8,20 +8,30 @@ batches are random tensors of the shapes the model's input spec builds.
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
+from dataclasses import dataclass, field
+
+from ..config import parse_config
+
+
+@dataclass
+class TrainBenchConfig:
+    """``python -m kpcn.bench train`` settings (``--config``, ``--set`` or the flags)."""
+
+    configs: list[str] = field(
+        default_factory=lambda: ["configs/small.yaml", "configs/small_dpcn.yaml", "configs/small_unet.yaml",
+                                 "configs/paper.yaml"],
+        metadata={"help": "training configs whose models are timed; the first is the baseline"})
+    batch: int = field(default=4, metadata={"help": "patches per step"})
+    patch: int = field(default=65, metadata={"help": "patch side in pixels"})
+    steps: int = field(default=3, metadata={"help": "timed steps (median)"})
+    warmup: int = field(default=1, metadata={"help": "untimed steps first"})
+    threads: int | None = field(default=None, metadata={"help": "torch threads (default: torch's)"})
 
 
 def bench_train(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="python -m kpcn.bench train", description=__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=["configs/small.yaml", "configs/small_dpcn.yaml", "configs/small_unet.yaml", "configs/paper.yaml"])
-    p.add_argument("--batch", type=int, default=4)
-    p.add_argument("--patch", type=int, default=65)
-    p.add_argument("--steps", type=int, default=3)
-    p.add_argument("--warmup", type=int, default=1)
-    p.add_argument("--threads", type=int, default=None)
-    args = p.parse_args(argv)
+    args = parse_config(TrainBenchConfig, argv, "python -m kpcn.bench train", __doc__.split("\n\n")[0])
 
     import torch
 
