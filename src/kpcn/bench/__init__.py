@@ -7,7 +7,7 @@ same run (a ratio):
 * ``kernel``  — the kernel-apply op against ``F.unfold`` (:mod:`.kernel`)
 * ``train``   — training throughput of configs, patches/s (:mod:`.train`)
 * ``denoise`` — whole-frame denoising against Intel OIDN; ``--skip`` the time saved
-  by leaving out what a scene does not need (:mod:`.denoise`)
+  by leaving out what a scene does not need (:mod:`.denoise`, :mod:`.skip`)
 
 Subcommands live in :data:`SUBCOMMANDS`, a dict mapping the name to a function
 ``fn(argv: list[str]) -> int`` that parses its own options.

@@ -49,7 +49,7 @@ their gradient); for KPCN with non-negative inputs they are non-negative anyway.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import torch
 from torch import nn
