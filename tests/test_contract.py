@@ -326,3 +326,16 @@ def test_command_configs_share_one_system(tmp_path, capsys):
         load_config(DatasetConfig, None, ["spp=[1, 4]"])
     with pytest.raises(ConfigError, match="scenez: unknown key; did you mean 'scenes'"):
         load_config(ReportConfig, None, ["scenez=[a]"])
+
+
+def test_multiply_adds_per_pixel_match_a_hand_count():
+    from kpcn.models import macs_per_pixel
+
+    # KPCN, per branch: conv 27->4 (3x3), conv 4->9 (3x3), then a 3x3 kernel on RGB; two branches
+    kpcn = create_model("kpcn", layers=2, width=4, conv_size=3, kernel_size=3)
+    assert macs_per_pixel(kpcn) == 2 * (27 * 4 * 9 + 4 * 9 * 9 + 3 * 9)
+    # U-Net, one branch (colour+albedo+normal, 9 ch), widths 4/6, 1 conv a level, no summary, 3x3 kernels:
+    # enc0 9->4 at full res, enc1 4->6 at 1/4 of the pixels, dec0 (6+4)->4, head 4->9 (1x1), apply 3*9
+    unet = create_model("unet_kpcn", input_spec="color_albedo_normal", widths=[4, 6], convs_per_level=1,
+                        kernel_size=3, summary_channels=0)
+    assert macs_per_pixel(unet, 32, 32) == 9 * 4 * 9 + 4 * 6 * 9 / 4 + 10 * 4 * 9 + 4 * 9 + 3 * 9

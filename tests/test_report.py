@@ -96,6 +96,10 @@ def test_markdown_pngs_and_summary(report):
             assert im.format == "PNG" and im.width >= 300 and im.height >= 150
     summary = json.loads(res.paths["summary"].read_text())
     assert set(summary["mean"]) >= {MC, "kpcn"}
+    # the stand-in's cost, counted by hand: per branch 27->8 and 8->8 and 8->25 (5x5 convs), 5x5 kernels on RGB
+    per_branch = 27 * 8 * 25 + 8 * 8 * 25 + 8 * 25 * 25 + 3 * 25
+    assert summary["method_macs_per_px"]["kpcn"] == 2 * per_branch
+    assert f"kpcn ({2 * per_branch / 1e3:.1f} k multiply-adds per pixel)" in md
     assert set(summary["mean"][MC]) == {str(s) for s in cfg.spp}
     eq = summary["equal_time"]
     assert [e["scene"] for e in eq] == list(cfg.scenes)

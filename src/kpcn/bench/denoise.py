@@ -124,6 +124,9 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
 
         torch.manual_seed(0)
         model = create_model(model_name, **model_kw).eval()
+        from kpcn.models.cost import macs_per_pixel
+
+        extra["macs_per_px"] = macs_per_pixel(model)
 
         def run():
             r = denoise_result(frame, model, tile=tile, device="cpu")
@@ -328,7 +331,7 @@ def bench_denoise(argv: list[str]) -> int:
           "(less sensitive to other load on the machine, but it counts OpenMP spin-waiting)")
     print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
     mw = max([8] + [len(n) for n in args.models])
-    header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  notes"
+    header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  {'kMAC/px':>8}  notes"
     print(header)
     print("-" * len(header))
     for r in results:
@@ -336,7 +339,8 @@ def bench_denoise(argv: list[str]) -> int:
         m = f"{r['mem_mb']:.0f}" if r.get("status") == "ok" else "-"
         c = f"{r['cpu_s']:.2f}" if r.get("status") == "ok" else "-"
         note = r.get("stats", "") if r.get("status") == "ok" else r.get("status", "")
-        print(f"{r['size']:>10}  {r['model']:<{mw}}  {t:>9}  {c:>8}  {m:>8}  {note}")
+        macs = f"{r['macs_per_px'] / 1e3:.1f}" if "macs_per_px" in r else "-"
+        print(f"{r['size']:>10}  {r['model']:<{mw}}  {t:>9}  {c:>8}  {m:>8}  {macs:>8}  {note}")
     if not args.no_oidn:
         print("\nratios kpcn / oidn (same run):")
         print(f"{'size':>10}  {'model':<{mw}}  {'time':>8}  {'memory':>8}")

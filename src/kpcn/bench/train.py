@@ -37,6 +37,7 @@ def bench_train(argv: list[str]) -> int:
 
     from ..config import load_config
     from ..losses import l1
+    from ..models.cost import macs_per_pixel
     from ..train import build_model
     from ..train_config import RunConfig
 
@@ -44,7 +45,7 @@ def bench_train(argv: list[str]) -> int:
         torch.set_num_threads(args.threads)
     b, s = args.batch, args.patch
     print(f"training throughput: batch {b} of {s}x{s}, {torch.get_num_threads()} threads, median of {args.steps} steps")
-    print(f"{'config':<28} {'inputs':<20} {'params':>9} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
+    print(f"{'config':<28} {'inputs':<20} {'params':>9} {'kMAC/px':>8} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
     base = None
     for path in args.configs:
         cfg = load_config(RunConfig, path)
@@ -70,5 +71,6 @@ def bench_train(argv: list[str]) -> int:
         rate = b / t
         base = base or rate
         n = sum(p.numel() for p in model.parameters())
-        print(f"{path:<28} {spec.name:<20} {n:>9} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
+        macs = macs_per_pixel(model) / 1e3
+        print(f"{path:<28} {spec.name:<20} {n:>9} {macs:>8.1f} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
     return 0

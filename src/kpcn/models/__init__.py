@@ -7,6 +7,7 @@ subclass, a ``@register_model`` factory and, when weights ship, a
 
 from ..inputs import SPECULAR_LOG_MAX
 from .base import DenoiserModel, check_inputs
+from .cost import macs_per_pixel
 from .kpcn import EPS, BranchConfig, Denoiser, DPCNBranch, KPCNBranch, reconstruct
 from .registry import (
     WEIGHTS_DIR,
@@ -33,6 +34,7 @@ __all__ = [
     "UNetKPCN",
     "WEIGHTS_DIR",
     "check_inputs",
+    "macs_per_pixel",
     "reconstruct",
     "create_model",
     "is_model",

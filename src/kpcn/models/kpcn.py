@@ -56,7 +56,7 @@ from torch import nn
 
 from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, get_input_spec, split_reconstruct
-from ..ops.kernel_apply import PADDING_MODES, kernel_apply
+from ..ops.kernel_apply import PADDING_MODES, KernelApply
 from .base import DenoiserModel, check_inputs
 from .registry import register_model, register_weights
 
@@ -223,6 +223,7 @@ class KPCNBranch(nn.Module):
         self.config = config
         k = config.kernel_size
         self.net = _conv_stack(config, k * k)
+        self.apply_kernels = KernelApply(k, config.padding_mode)  # no parameters: the state dict is unchanged
         if config.init_sigma is not None:
             with torch.no_grad():
                 self.net[-1].bias.copy_(self._prior_bias(config))
@@ -264,7 +265,7 @@ class KPCNBranch(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         weights = self.kernels(x)
-        return kernel_apply(x[:, :3], weights, self.config.kernel_size, self.config.padding_mode)
+        return self.apply_kernels(x[:, :3], weights)
 
 
 class DPCNBranch(nn.Module):

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..inputs import get_input_spec
-from ..ops.kernel_apply import kernel_apply
+from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kpcn import INPUT_TRANSFORMS, transform_input
 from .registry import register_model
@@ -130,6 +130,7 @@ class UNetBranch(nn.Module):
             below = w[level]
         k = cfg.kernel_size
         self.head = nn.Conv2d(w[0], k * k, 1)
+        self.apply_kernels = KernelApply(k, "replicate")
         nn.init.kaiming_normal_(self.head.weight, nonlinearity="linear")
         with torch.no_grad():
             self.head.weight.mul_(cfg.out_init_gain)
@@ -175,7 +176,7 @@ class UNetBranch(nn.Module):
         s = self.cfg.logit_scale
         logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
         weights = torch.softmax(logits, dim=1)
-        return kernel_apply(x[:, :3].contiguous(), weights.contiguous(), self.cfg.kernel_size, "replicate")
+        return self.apply_kernels(x[:, :3].contiguous(), weights.contiguous())
 
 
 class UNetKPCN(DenoiserModel):

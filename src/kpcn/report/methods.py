@@ -24,6 +24,7 @@ class Method:
     description: str = ""
     repeats: int = 1
     warmed_up: bool = False
+    macs_per_px: float | None = None  #: multiply-adds per pixel (kpcn models; None where unknown)
 
     def __call__(self, frame: Frame) -> tuple[np.ndarray, float]:
         """Denoise ``frame``; returns the ``(H, W, 3)`` image and the seconds of the call.
@@ -56,6 +57,7 @@ def parse_model_spec(spec: str) -> tuple[str, str]:
 def model_method(spec: str, cfg: ReportConfig) -> Method:
     """A :class:`Method` running :func:`kpcn.inference.denoise` with the model ``spec``."""
     from ..inference import denoise, load_model
+    from ..models import macs_per_pixel
 
     label, value = parse_model_spec(spec)
     model = load_model(value, cfg.device, trust_pickle=cfg.trust_checkpoint)  # loaded once: loading is not timed
@@ -63,7 +65,8 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
     def fn(frame: Frame) -> np.ndarray:
         return denoise(frame, model=model, tile=cfg.tile, device=cfg.device)
 
-    return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats)
+    return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats,
+                  macs_per_px=macs_per_pixel(model))
 
 
 def oidn_method(repeats: int = 1) -> Method:

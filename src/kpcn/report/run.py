@@ -65,6 +65,7 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
         "scenes": list(scenes),
         "methods": [MC] + [m.name for m in methods],
         "method_descriptions": {m.name: m.description for m in methods},
+        "method_macs_per_px": {m.name: m.macs_per_px for m in methods if m.macs_per_px is not None},
         "machine": machine,
         "notes": notes,
         "mean": {m: {str(r["spp"]): {k: r[k] for k in METRICS + TIMES} for r in means if r["method"] == m}

@@ -77,6 +77,11 @@ def equal_time_markdown(eq: Sequence[dict], summary: dict | None) -> str:
     return "\n".join(lines)
 
 
+def _with_cost(method: str, summary: dict) -> str:
+    macs = summary.get("method_macs_per_px", {}).get(method)
+    return f"{method} ({macs / 1e3:.1f} k multiply-adds per pixel)" if macs is not None else method
+
+
 def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[dict], summary: dict) -> str:
     """The full Markdown report (also printed, mean table and equal-time figure first)."""
     cfg = summary["config"]
@@ -86,7 +91,7 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
         "",
         f"{len(summary['scenes'])} scenes at {cfg['resolution'][0]}×{cfg['resolution'][1]}, "
         f"spp {', '.join(map(str, cfg['spp']))}, reference {cfg['ref_spp']} spp (independent seed). "
-        f"Methods: {', '.join(summary['methods'])}.",
+        f"Methods: {', '.join(_with_cost(m, summary) for m in summary['methods'])}.",
         "",
         "Times: render seconds are the wall time of the sampling (kernels compiled by an untimed warm-up render); "
         f"denoise seconds are the wall time of one denoise call{rep} (model: `kpcn.denoise` on the in-memory frame; "
