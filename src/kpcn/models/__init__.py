@@ -20,6 +20,7 @@ from .registry import (
     register_weights,
     weights_entry,
 )
+from .mskpcn import MSKPCN, MSKPCNConfig
 from .unet import UNetConfig, UNetKPCN
 
 __all__ = [
@@ -30,6 +31,8 @@ __all__ = [
     "DenoiserModel",
     "DPCNBranch",
     "KPCNBranch",
+    "MSKPCN",
+    "MSKPCNConfig",
     "UNetConfig",
     "UNetKPCN",
     "WEIGHTS_DIR",

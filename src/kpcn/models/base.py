@@ -82,8 +82,26 @@ class DenoiserModel(nn.Module):
         """Whole-frame context computed once per frame (``None`` for local models)."""
         return None
 
-    def forward(self, inputs: dict[str, torch.Tensor], context: Any = None) -> dict[str, torch.Tensor]:  # pragma: no cover
-        raise NotImplementedError
+    def run_branch(self, name: str, x: torch.Tensor, context: Any = None) -> torch.Tensor:
+        """Denoise one branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` in the branch's space.
+
+        The default runs the submodule registered under the branch's name.
+        """
+        return getattr(self, name)(x)
+
+    def forward(self, inputs: dict[str, torch.Tensor], context: Any = None) -> dict[str, torch.Tensor]:
+        """Every present branch through :meth:`run_branch`, then the spec's reconstruction.
+
+        A branch absent from ``inputs`` (or ``None``) is not run and is zero.
+        """
+        check_inputs(self, inputs)
+        out = {b: self.run_branch(b, inputs[b], context) for b in self.branches if inputs.get(b) is not None}
+        color = self.input_spec.reconstruct(out, inputs)
+        for b in self.branches:  # a branch not run is zero in its own space
+            if b not in out:
+                out[b] = torch.zeros_like(color)
+        out["color"] = color
+        return out
 
 
 def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:

@@ -57,7 +57,7 @@ from torch import nn
 from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, get_input_spec, split_reconstruct
 from ..ops.kernel_apply import PADDING_MODES, KernelApply
-from .base import DenoiserModel, check_inputs
+from .base import DenoiserModel
 from .registry import register_model, register_weights
 
 __all__ = [
@@ -210,6 +210,24 @@ def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
         raise ValueError(f"{who}: input must have {cfg.in_channels} channels, got {x.shape[1]} ({tuple(x.shape)})")
 
 
+def kernel_prior_bias(k: int, sigma: float, logit_scale: float | None) -> torch.Tensor:
+    """Bias ``(k*k,)`` of a kernel head so that a fresh model's kernels are a Gaussian of std ``sigma`` pixels.
+
+    The log-prior ``-d^2 / (2 sigma^2)`` over the tap offset ``d``, clipped to
+    ``-logit_scale / 2`` (no tap starts in the flat part of the tanh bound) and
+    mapped through ``atanh`` so that ``s * tanh(bias / s)`` equals it.
+    """
+    r = k // 2
+    off = torch.arange(k, dtype=torch.float64) - r
+    d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
+    prior = -d2 / (2.0 * sigma**2)
+    s = logit_scale
+    if s is None:
+        return prior.clamp(min=-30.0).float()
+    prior = prior.clamp(min=-0.5 * s)
+    return (s * torch.atanh(prior / s)).float()
+
+
 class KPCNBranch(nn.Module):
     """Kernel-predicting branch.
 
@@ -230,15 +248,7 @@ class KPCNBranch(nn.Module):
 
     @staticmethod
     def _prior_bias(cfg: BranchConfig) -> torch.Tensor:
-        k, r = cfg.kernel_size, cfg.kernel_size // 2
-        off = torch.arange(k, dtype=torch.float64) - r
-        d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
-        prior = -d2 / (2.0 * cfg.init_sigma**2)
-        s = cfg.logit_scale
-        if s is None:
-            return prior.clamp(min=-30.0).float()
-        prior = prior.clamp(min=-0.5 * s)
-        return (s * torch.atanh(prior / s)).float()  # so that s*tanh(bias/s) == prior
+        return kernel_prior_bias(cfg.kernel_size, cfg.init_sigma, cfg.logit_scale)
 
     @property
     def receptive_radius(self) -> int:
@@ -337,15 +347,6 @@ class Denoiser(DenoiserModel):
         """Pixels a tile needs on each side so its interior equals full-frame inference (features excluded)."""
         return getattr(self, self.branches[0]).receptive_radius
 
-    def forward(self, inputs: dict[str, torch.Tensor], context=None) -> dict[str, torch.Tensor]:
-        check_inputs(self, inputs)
-        out = {b: getattr(self, b)(inputs[b]) for b in self.branches if inputs.get(b) is not None}
-        color = self.input_spec.reconstruct(out, inputs)
-        for b in self.branches:  # a branch not run is zero in its own space
-            if b not in out:
-                out[b] = torch.zeros_like(color)
-        out["color"] = color
-        return out
 
 
 def _build(kind: str, config: BranchConfig) -> Denoiser:

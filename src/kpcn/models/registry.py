@@ -168,4 +168,4 @@ def create_model(name: str, **cfg) -> nn.Module:
 
 def _ensure_builtin_models() -> None:
     # importing the modules registers the built-in models and their weights
-    from . import kpcn, unet  # noqa: F401
+    from . import kpcn, mskpcn, unet  # noqa: F401

@@ -38,7 +38,7 @@ from torch import nn
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
-from .kpcn import INPUT_TRANSFORMS, transform_input
+from .kpcn import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
 from .registry import register_model
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN"]
@@ -134,10 +134,7 @@ class UNetBranch(nn.Module):
         nn.init.kaiming_normal_(self.head.weight, nonlinearity="linear")
         with torch.no_grad():
             self.head.weight.mul_(cfg.out_init_gain)
-            off = torch.arange(k, dtype=torch.float64) - k // 2
-            d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
-            prior = (-d2 / (2.0 * cfg.init_sigma**2)).clamp(min=-0.5 * cfg.logit_scale)
-            self.head.bias.copy_((cfg.logit_scale * torch.atanh(prior / cfg.logit_scale)).float())
+            self.head.bias.copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
         a = self.cfg.alignment
@@ -210,16 +207,9 @@ class UNetKPCN(DenoiserModel):
                 out[b] = net.summarize(net.encode(inputs[b])[-1])
         return out
 
-    def forward(self, inputs: dict[str, torch.Tensor], context=None) -> dict[str, torch.Tensor]:
-        check_inputs(self, inputs)
-        ctx = context or {}
-        out = {b: getattr(self, b)(inputs[b], ctx.get(b)) for b in self.branches if inputs.get(b) is not None}
-        color = self.input_spec.reconstruct(out, inputs)
-        for b in self.branches:
-            if b not in out:
-                out[b] = torch.zeros_like(color)
-        out["color"] = color
-        return out
+    def run_branch(self, name: str, x: torch.Tensor, context=None) -> torch.Tensor:
+        """One branch, with its whole-frame summary from ``context`` when given (else its own)."""
+        return getattr(self, name)(x, (context or {}).get(name))
 
 
 @register_model("unet_kpcn", config=UNetConfig)
