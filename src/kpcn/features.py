@@ -15,9 +15,17 @@ channels   content
 Gradients are forward differences, zero on the last column / row. Depth is
 divided by the image's largest depth (``depth_scale``; pass the whole frame's
 value when working on tiles) and its variance by the square of that.
+
+Variances are bounded before they are divided or squared (:func:`bound_variance`):
+the variance of the mean of n >= 2 non-negative samples is at most the mean
+squared, and that of normals (in [-1, 1]) at most 1. A larger value (a corrupt
+file, a variance near the float maximum) is clamped to that bound, and the
+clamped values are counted, per layer, in a RuntimeWarning; a kpcn render never
+reaches the bound, so its features do not change.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -74,6 +82,66 @@ def depth_scale_of(depth: torch.Tensor) -> torch.Tensor:
     """Per-image depth normaliser ``(B, 1, 1, 1)``: the largest depth, or 1 where nothing was hit."""
     m = depth.flatten(1).amax(dim=1).view(-1, 1, 1, 1)
     return torch.where(m > 0, m, torch.ones_like(m))
+
+
+#: Ceiling of every variance fed to the features, whatever the layer's mean: keeps
+#: ``var / (albedo + eps)^2`` (<= 1e35) and its mean over RGB finite in float32.
+VARIANCE_MAX = 1e30
+#: Slack of the bound ``mean^2`` for rounding: of the moments (float32) and of float16 files.
+VARIANCE_BOUND_REL = 1e-2
+VARIANCE_BOUND_ABS = 1e-6
+
+
+def variance_bound(mean: torch.Tensor, unit_range: bool = False) -> torch.Tensor:
+    """The largest variance of a pixel mean ``mean`` (``(B, C, H, W)``) can have, per channel.
+
+    For n >= 2 non-negative samples of mean m, the variance of the mean
+    ``(m2 - m^2) / (n - 1)`` is at most ``m^2`` (all the weight in one sample);
+    for samples in [-1, 1] (``unit_range``: normals) at most 1. A slack of
+    :data:`VARIANCE_BOUND_REL` and :data:`VARIANCE_BOUND_ABS` covers rounding;
+    the bound never exceeds :data:`VARIANCE_MAX`.
+    """
+    m2 = mean.float().square()
+    if unit_range:
+        m2 = m2.clamp_min(1.0)
+    return (m2 * (1.0 + VARIANCE_BOUND_REL) + VARIANCE_BOUND_ABS).clamp_max(VARIANCE_MAX)
+
+
+def bound_variance(var: torch.Tensor, mean: torch.Tensor, unit_range: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """``var`` with non-finite and negative values zeroed and values above :func:`variance_bound` clamped.
+
+    Args:
+        var: ``(B, C, H, W)`` variance of the pixel mean (C = 3 or 1).
+        mean: ``(B, C', H, W)`` the layer itself; with a one-channel ``var`` the
+            bound is that of the brightest channel.
+        unit_range: the samples lie in [-1, 1] (normals).
+
+    Returns:
+        The bounded variance (same shape as ``var``; values within the bound
+        unchanged) and the number of clamped values (a 0-dim tensor).
+    """
+    v = torch.nan_to_num(var.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    bound = variance_bound(torch.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0), unit_range)
+    if bound.shape[1] != v.shape[1]:
+        bound = bound.amax(dim=1, keepdim=True)
+    over = v > bound
+    return torch.where(over, bound, v), over.sum()
+
+
+def _warn_clamped(counts: Mapping[str, torch.Tensor]) -> None:
+    if not counts:
+        return
+    values = torch.stack([c.reshape(()) for c in counts.values()]).tolist()  # one sync for all layers
+    hit = {k: int(n) for k, n in zip(counts, values) if n}
+    if hit:
+        warnings.warn(
+            "kpcn.features: clamped variances above the largest variance a pixel mean can have "
+            f"(its mean squared; 1 for normals; at most {VARIANCE_MAX:g}): "
+            + ", ".join(f"{k}: {n}" for k, n in hit.items())
+            + " value(s); these variances are corrupt or not the variance of the pixel mean",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def _variance(v: torch.Tensor) -> torch.Tensor:
@@ -164,6 +232,15 @@ def branch_features(
     if missing:
         raise KeyError(f"branch_features: missing buffers {missing}; got {sorted(buffers)}")
     b = {k: torch.nan_to_num(buffers[k].float(), nan=0.0, posinf=0.0, neginf=0.0) for k in need}
+    if variances:  # bound every variance by what its layer's mean allows, before any division
+        clamped = {}
+        for k in need:
+            if k.endswith("Variance"):
+                layer = k[: -len("Variance")]
+                var = b[k][:, :1] if layer == "depth" else b[k]
+                mean = b[layer][:, :1] if layer == "depth" else b[layer]
+                b[k], clamped[k] = bound_variance(var, mean, unit_range=layer == "normal")
+        _warn_clamped(clamped)
     albedo = b["albedo"].clamp_min(0.0)
     depth = b["depth"][:, :1].clamp_min(0.0)
     if depth_scale is None:
