@@ -10,7 +10,9 @@ Python::
 Command line: ``kpcn-denoise in.exr -o out.exr`` (or ``python -m kpcn.inference``).
 
 Modules: :mod:`.weights` (which model a call means), :mod:`.tiling` (aligned
-tiles with a halo), :mod:`.pipeline` (one frame, end to end), :mod:`.cli`.
+tiles with a halo), :mod:`.pipeline` (one frame, end to end), :mod:`.paths`
+(which file a path names: no output ever replaces an input, for the API and the
+CLI alike), :mod:`.cli`.
 """
 from .pipeline import PASSTHROUGH_REL_STD, DenoiseResult, DenoiseStats, denoise, denoise_result, peak_rss_mb
 from .tiling import Tile, plan_tiles, tile_size

@@ -4,6 +4,13 @@
 
     kpcn-denoise in.exr [more.exr ...] [-o out.exr | --out-dir DIR] [--model NAME_OR_FILE]
                  [--tile N] [--device cpu] [--trust-checkpoint]
+
+Before anything is denoised the whole call is checked (:func:`.paths.check_jobs`):
+every input exists and is a file, no input is given twice, no output is an input
+(under any spelling: relative, symlink, hard link), no two inputs share an output
+(``a/x.exr b/x.exr --out-dir OUT``), and no output is a folder or lies under a file.
+A problem is one line on stderr and exit code 2. Missing output folders are
+created. Outputs are written atomically, so a failed file leaves none.
 """
 from __future__ import annotations
 
@@ -19,8 +26,9 @@ from ..checkpoint import CheckpointError
 from ..config import ConfigError
 from ..io import ExrError, MissingLayerError
 from ..models import list_weights
+from .paths import check_jobs
 from .pipeline import denoise_result
-from .weights import DEFAULT_MODEL, describe, load_model
+from .weights import DEFAULT_MODEL, describe, load_model, resolve_device
 
 __all__ = ["main"]
 
@@ -54,14 +62,44 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _refuse(problems: list[str]) -> int:
+    for msg in problems:
+        print(f"kpcn-denoise: {msg}", file=sys.stderr)
+    return 2
+
+
+def _jobs(args) -> list[tuple[str, str]]:
+    """``(input, output)`` for each input, both spelled as the user gave them (so messages quote them)."""
+    if args.out:
+        return [(args.inputs[0], args.out)]
+    return [(inp, os.fspath(_default_out(Path(inp), args.out_dir))) for inp in args.inputs]
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Exit codes: 0 all written; 1 some files failed (the others are written); 2 refused before any work
+    (a usage mistake: a missing input, an output that is an input or is shared, a folder where a file
+    must be, unusable weights or device), with one line per problem on stderr."""
     p = build_parser()
     args = p.parse_args(argv)
     if args.out and len(args.inputs) > 1:
         p.error("-o/--out takes a single input; use --out-dir for several")
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads must be at least 1, got {args.threads}")
+
+    # everything about the files is checked before the model is loaded or anything is denoised
+    if args.out_dir and os.path.lexists(args.out_dir) and not os.path.isdir(args.out_dir):
+        return _refuse([f"--out-dir {args.out_dir} is a file, not a folder"])
+    jobs = _jobs(args)
+    problems = check_jobs(jobs)
+    if problems:
+        return _refuse(problems)
+
     if args.threads:
         torch.set_num_threads(args.threads)
-
+    try:
+        resolve_device(args.device)
+    except (RuntimeError, ValueError) as exc:
+        return _refuse([f"--device {args.device}: {exc}"])
     try:
         net = load_model(args.model, args.device, trust_pickle=args.trust_checkpoint)
     except (FileNotFoundError, CheckpointError, ConfigError, ValueError, TypeError, RuntimeError) as exc:
@@ -72,15 +110,12 @@ def main(argv: list[str] | None = None) -> int:
           f"tile {args.tile}, device {dev}", flush=True)
 
     failures: list[tuple[str, str]] = []
-    for inp in args.inputs:
-        src = Path(inp)
-        dst = Path(args.out) if args.out else _default_out(src, args.out_dir)
+    for inp, dst in jobs:
         try:
-            if src.exists() and dst.exists() and os.path.samefile(src, dst):
-                raise ValueError(f"output {dst} is the input file; choose another -o/--out-dir")
+            # denoise_result repeats the output checks (the same functions), in case a file changed meanwhile
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                res = denoise_result(src, net, dst, tile=args.tile, device=args.device, half=args.half,
+                res = denoise_result(inp, net, dst, tile=args.tile, device=args.device, half=args.half,
                                      skip=not args.no_skip)
             for wmsg in caught:
                 print(f"warning: {wmsg.message}", file=sys.stderr)

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ..io import Frame, read_exr, sanitize_layers, write_exr
+from .paths import check_not_input, check_output_path
 from .tiling import plan_tiles, tile_size
 from .weights import describe, load_model, resolve_device
 
@@ -118,6 +119,15 @@ class DenoiseResult:
     stats: DenoiseStats
     model_name: str = ""
     out_path: str | None = None
+
+
+def _source_path(src) -> str | None:
+    """The file a denoise input came from: the path given, or the file a :class:`Frame` was read from."""
+    if isinstance(src, (str, os.PathLike)):
+        return os.fspath(src)
+    if isinstance(src, Frame) and src.path:
+        return os.fspath(src.path)
+    return None
 
 
 def _as_frame(src, layers) -> tuple[Frame, float]:
@@ -220,6 +230,11 @@ def denoise_result(
     """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour and :class:`DenoiseStats`)."""
     if tile is not None and (isinstance(tile, bool) or int(tile) != tile):
         raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame), got {tile!r}")
+    if out_path is not None:  # refused before any work, not after it
+        check_output_path(out_path)
+        source = _source_path(exr_path_or_frame)
+        if source is not None and os.path.exists(source):  # a missing input is the reader's error
+            check_not_input(out_path, source)
     dev = resolve_device(device)
     net = load_model(model, dev, trust_pickle=trust_pickle)
     spec = net.input_spec
@@ -307,7 +322,8 @@ def _write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResu
     for name in ("albedo", "normal", "depth"):
         if name in frame:
             layers[name] = frame[name]
-    meta = {k: v for k, v in frame.meta.items() if k in ("spp", "seed", "scene", "renderTimeSeconds")}
+    meta = {k: v for k, v in frame.meta.items()
+            if k in ("spp", "seed", "scene", "renderTimeSeconds", "dataWindow", "displayWindow")}
     meta.update(
         {
             "source": os.path.abspath(frame.path) if frame.path else "<in-memory frame>",
@@ -340,7 +356,9 @@ def denoise(
         out_path: if given, also write an EXR (atomically): the denoised colour as
             ``R G B``, the input's ``albedo``/``normal``/``depth``, and header
             attributes ``source``, ``denoiser``, ``denoiseSeconds`` (and the input's
-            ``spp``, ``seed``, ``scene``).
+            ``spp``, ``seed``, ``scene``). Missing folders are created. It must not
+            be the input file (nor the file a :class:`~kpcn.io.Frame` was read from),
+            under any spelling: relative, through a symlink, or a hard link of it.
         tile: interior tile size in pixels (rounded up to the model's alignment);
             ``None`` or ``0``: the whole frame at once.
         device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"``, ...
@@ -352,6 +370,8 @@ def denoise(
     Raises:
         MissingLayerError: the input lacks layers the model needs (names them and those found).
         ExrError / FileNotFoundError: unreadable or missing file; CheckpointError: unusable weights.
+        ValueError: ``out_path`` is the input (names both); raised before any denoising.
+        IsADirectoryError / NotADirectoryError: ``out_path`` is a folder, or under a file; raised first too.
     """
     return denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
                           trust_pickle=trust_pickle).color
