@@ -11,7 +11,6 @@ to [0, 1] (Bako et al. 2017 §5; CN113947547A claim 4).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -36,14 +35,35 @@ class FramePair:
 
 
 def read_manifest(root: str | Path, spp: Sequence[int] | None = None) -> list[FramePair]:
-    """The (input, reference) pairs of a rendered data set, optionally only some spp."""
+    """The (input, reference) pairs of a rendered data set, optionally only some spp.
+
+    Only a usable data set is read: its manifest must say ``"complete": true``
+    (written after the last scene of ``python -m kpcn.render dataset``) and
+    every frame it lists must exist. A manifest written before kpcn recorded
+    completeness (no ``"format"`` key) cannot tell an interrupted render from
+    a smaller complete one: it is read with a ``UserWarning`` when all its
+    files exist (see :mod:`kpcn.render.manifest`).
+
+    Raises:
+        FileNotFoundError: ``root`` has no manifest.json.
+        DatasetError: (a ``ValueError``) an incomplete data set ("N of M scenes
+            rendered", with the command that finishes it), missing frames, a
+            damaged manifest, or requested ``spp`` the data set does not have.
+    """
+    from .render.manifest import DatasetError, check_usable, dataset_status
+
     root = Path(root)
-    mpath = root / "manifest.json"
-    if not mpath.exists():
+    status = dataset_status(root)
+    if status.manifest is None:
         raise FileNotFoundError(f"{root}: no manifest.json — render one with `python -m kpcn.render dataset --out {root}`")
-    manifest = json.loads(mpath.read_text())
+    check_usable(status)
+    if spp is not None:
+        absent = sorted(set(int(s) for s in spp) - set(status.settings["spp"]))
+        if absent:
+            raise DatasetError(f"{root}: no inputs at {' '.join(map(str, absent))} spp; the data set has "
+                               f"{' '.join(map(str, status.settings['spp']))} spp")
     pairs = []
-    for sc in manifest["scenes"]:
+    for sc in status.manifest["scenes"]:
         for s, rel in sc["inputs"].items():
             if spp is None or int(s) in spp:
                 pairs.append(FramePair(sc["name"], int(s), root / rel, root / sc["reference"]))

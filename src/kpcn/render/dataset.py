@@ -1,15 +1,37 @@
-"""Rendering data sets: noisy inputs at several sample counts and a reference per scene."""
+"""Rendering data sets: noisy inputs at several sample counts and a reference per scene.
+
+A data set knows whether it is complete (``"complete"`` in its manifest, see
+:mod:`kpcn.render.manifest`) and what each of its frames was rendered with (a
+render record in the frame's EXR header and in the manifest, see
+:mod:`kpcn.render.record`). :func:`render_dataset` reuses a frame on disk only
+when its record matches what it would render now, and renders every other
+frame again, logging one line per frame — so a folder never mixes settings.
+:func:`ensure_dataset` is what training calls: it returns a complete data set
+with the requested settings, resumes an incomplete one, and never overwrites a
+data set rendered with other settings.
+"""
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from ..io import atomic_write
+from . import manifest as mf
 from .frame import render_to_exr
+from .manifest import DatasetError, DatasetStatus, dataset_status
+from .record import HEADER_KEY, frame_record, scene_identity, stale_reason
 from .scene import load_scene
+
+log = logging.getLogger("kpcn.render")
+
+MAX_DEPTH = 8  #: path length of data set frames (render_frame's default)
+PASS_SPP = 256  #: samples per pass (render_frame's default; the pass split changes the noise)
+
+__all__ = ["DatasetConfig", "DatasetError", "DatasetStatus", "dataset_status", "render_dataset", "ensure_dataset"]
 
 
 @dataclass
@@ -26,13 +48,27 @@ class DatasetConfig:
     def __post_init__(self) -> None:
         from ..config import ConfigError
 
-        if self.scenes < 1:
-            raise ConfigError(f"scenes: must be >= 1, got {self.scenes}")
-        if not self.spp or min(self.spp) < 2 or self.ref_spp < 2:
-            raise ConfigError(f"spp and ref_spp: every sample count must be >= 2 (variances need two), got "
-                              f"spp={self.spp}, ref_spp={self.ref_spp}")
-        if min(self.resolution) < 1:
-            raise ConfigError(f"resolution: width and height must be >= 1, got {list(self.resolution)}")
+        try:
+            check_settings(self.scenes, self.spp, self.ref_spp, self.resolution, self.first_seed)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+
+def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
+    """ValueError naming the setting (and its ``python -m kpcn.render dataset`` flag) that is invalid."""
+    if n_scenes is not None and n_scenes < 1:
+        raise ValueError(f"scenes (--scenes): must be >= 1, got {n_scenes}")
+    if first_seed < 0:
+        raise ValueError(f"first_seed (--first-seed): must be >= 0, got {first_seed}")
+    spp = list(spp)
+    need = "spp and ref_spp: every sample count must be >= 2 (variances need two samples)"
+    if not spp or min(spp) < 2:
+        raise ValueError(f"{need}; spp (--spp) got {spp}")
+    if ref_spp < 2:
+        raise ValueError(f"{need}; ref_spp (--ref-spp) got {ref_spp}")
+    res = list(resolution)
+    if len(res) != 2 or min(res) < 1:
+        raise ValueError(f"resolution (--resolution): width and height must be >= 1, got {res}")
 
 
 def render_dataset(
@@ -48,34 +84,152 @@ def render_dataset(
     """Render procedural scenes (or ``scenes``) into ``out_dir`` with a manifest.
 
     Layout: ``out_dir/<scene>/input_<spp>spp.exr`` for each input spp, and
-    ``out_dir/<scene>/reference.exr``; ``out_dir/manifest.json`` lists them.
-    Frames already on disk are kept (an interrupted run resumes).
+    ``out_dir/<scene>/reference.exr``; ``out_dir/manifest.json`` lists them
+    (format: :mod:`kpcn.render.manifest`). Scene ``i`` is ``random:<first_seed + i>``
+    (or ``scenes[i]``: XML paths, ``test:``/``random:`` names or dicts) and
+    its frames use seed ``first_seed + i``.
+
+    Frames already on disk are kept when their render record (resolution, spp,
+    seed, role, scene source and fingerprint, ...) equals what would be
+    rendered now — so an interrupted run resumes — and rendered again
+    otherwise, with one logged line per frame naming what differed. Before the
+    first frame is changed the manifest says ``"complete": false`` (with the
+    new settings and the scenes finished so far); ``"complete": true`` is
+    written after the last scene. Files of an earlier data set that the new
+    one does not list (other spp, more scenes) are left in place, unlisted.
+
+    Raises:
+        ValueError: invalid settings (nothing is written).
+        SceneError: a scene cannot be loaded.
     """
     from tqdm import tqdm
 
+    check_settings(None if scenes is not None else n_scenes, spp_list, ref_spp, resolution, first_seed)
+    spp_list = [int(s) for s in dict.fromkeys(spp_list)]
+    resolution = (int(resolution[0]), int(resolution[1]))
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     items = list(scenes) if scenes is not None else [f"random:{first_seed + i}" for i in range(n_scenes)]
-    manifest = {"ref_spp": int(ref_spp), "spp": [int(s) for s in spp_list], "resolution": list(resolution), "scenes": []}
+    if not items:
+        raise ValueError("scenes: the scene list is empty")
+    manifest = {"format": mf.FORMAT, "complete": False, "procedural": scenes is None,
+                **mf.settings(len(items), spp_list, ref_spp, resolution, first_seed),
+                "max_depth": MAX_DEPTH, "pass_spp": PASS_SPP, "scenes": []}
+    try:
+        old = mf.load_manifest(out)
+    except DatasetError as exc:
+        log.warning("%s (it is replaced)", exc)
+        old = None
+    if old is not None:
+        try:
+            diff = mf.differences(mf.manifest_settings(old), manifest)
+        except (KeyError, TypeError, ValueError, IndexError):
+            diff = ["an unreadable manifest"]
+        if diff:
+            log.info("%s: the folder holds a data set with other settings (%s); its frames are checked one by one "
+                     "and rendered again where they differ", out, ", ".join(diff))
+
+    def save() -> None:
+        text = json.dumps(manifest, indent=1)
+        atomic_write(out / mf.MANIFEST, lambda tmp: Path(tmp).write_text(text))
+
+    changing = False  # once a frame is rendered, the manifest says "complete": false until the end
     for i, sc in enumerate(tqdm(items, desc="render", disable=not progress)):
         sname = f"scene_{i:04d}" if isinstance(sc, dict) else str(sc).replace(":", "_").replace("/", "_")
         folder = out / sname
-        folder.mkdir(exist_ok=True)
         seed = first_seed + i
+        source, fingerprint, to_render = scene_identity(sc, resolution)
         # role 1 = reference; each input spp gets a role of its own so no two frames share noise
-        jobs = [(s, folder / f"input_{s}spp.exr", 2 + s) for s in spp_list] + [(ref_spp, folder / "reference.exr", 1)]
+        jobs = [("input", s, folder / f"input_{s}spp.exr", 2 + s) for s in spp_list]
+        jobs.append(("reference", ref_spp, folder / "reference.exr", 1))
+        entry = {"name": sname, "source": source if isinstance(sc, (str, os.PathLike)) else "dict", "seed": seed,
+                 "fingerprint": fingerprint,
+                 "inputs": {str(s): path.relative_to(out).as_posix() for _, s, path, _ in jobs[:-1]},
+                 "reference": jobs[-1][2].relative_to(out).as_posix(), "frames": {}}
         loaded = None
-        for s, path, role in jobs:
-            if path.exists():  # resume: keep what an earlier run finished
-                continue
-            loaded = loaded or load_scene(sc, resolution)
-            render_to_exr(sc, path, s, seed=seed, role=role, loaded=loaded)
-        manifest["scenes"].append({
-            "name": sname,
-            "source": sc if isinstance(sc, str) else "dict",
-            "seed": seed,
-            "inputs": {str(s): str(p.relative_to(out)) for s, p, role in jobs if role != 1},
-            "reference": str(jobs[-1][1].relative_to(out)),
-        })
-        atomic_write(out / "manifest.json", lambda tmp: Path(tmp).write_text(json.dumps(manifest, indent=1)))
+        for role, s, path, noise_role in jobs:
+            rec = frame_record(role=role, spp=s, seed=seed, noise_role=noise_role, resolution=resolution,
+                               max_depth=MAX_DEPTH, pass_spp=PASS_SPP, source=source, fingerprint=fingerprint)
+            reason = stale_reason(path, rec)
+            if reason is not None:
+                if not changing:
+                    save()
+                    changing = True
+                if reason != "missing":
+                    log.info("re-rendering %s: %s", path, reason)
+                folder.mkdir(parents=True, exist_ok=True)
+                loaded = loaded or load_scene(to_render, resolution)
+                render_to_exr(to_render, path, s, seed=seed, role=noise_role, loaded=loaded, max_depth=MAX_DEPTH,
+                              pass_spp=PASS_SPP, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
+            entry["frames"][path.relative_to(out).as_posix()] = rec
+        manifest["scenes"].append(entry)
+        if changing:
+            save()
+    manifest["complete"] = True
+    if changing or old != manifest:
+        save()
     return out
+
+
+def ensure_dataset(
+    root: str | os.PathLike,
+    n_scenes: int,
+    spp: Sequence[int],
+    ref_spp: int,
+    resolution: Sequence[int],
+    first_seed: int,
+    render_if_missing: bool = True,
+    progress: bool = True,
+) -> Path:
+    """The procedural data set at ``root`` with these settings, complete; rendered or resumed if allowed.
+
+    * complete, with these settings and every listed frame on disk: returned at
+      once (only the manifest is read and the files stat'ed);
+    * no data set there, or an incomplete one (an interrupted render) or one
+      missing frames, with these settings: rendered or finished by
+      :func:`render_dataset` (frames already rendered with these settings are
+      kept) when ``render_if_missing``, else :class:`DatasetError`;
+    * a data set with other settings (complete or not): :class:`DatasetError`
+      naming each difference — it is never overwritten here (render it anew
+      with ``python -m kpcn.render dataset``, or point at another folder).
+
+    Settings are compared as ``scenes`` (n_scenes), ``first_seed``, the set of
+    ``spp``, ``ref_spp`` and ``resolution`` (width, height). A legacy manifest
+    (written before completeness was recorded) counts as complete when it lists
+    ``n_scenes`` scenes ``random:<first_seed + i>`` with these settings, and as
+    incomplete when it lists a shorter prefix of them.
+
+    Raises:
+        DatasetError: as above; the message names the folder, what is missing
+            or differs, and the command that renders the requested data set.
+        ValueError: invalid settings.
+    """
+    check_settings(n_scenes, spp, ref_spp, resolution, first_seed)
+    root = Path(root)
+    want = mf.settings(n_scenes, spp, ref_spp, resolution, first_seed)
+    cmd = mf.render_command(root, want)
+    st = dataset_status(root)
+    if st.manifest is None:
+        if not render_if_missing:
+            raise DatasetError(f"{root}: no data set (no {mf.MANIFEST}); render it with `{cmd}`")
+        log.info("rendering the data set %s (%s)", root, mf.describe(want))
+    else:
+        have = st.settings
+        if st.complete is None and st.rendered < n_scenes \
+                and not mf.differences({**have, "n_scenes": n_scenes}, want):
+            diff, incomplete = [], True  # a legacy manifest of this data set's first scenes: an interrupted render
+        else:
+            diff, incomplete = mf.differences(have, want), st.complete is False
+        if diff:
+            state = f"an incomplete ({st.rendered} of {have['n_scenes']} scenes)" if incomplete else "a complete"
+            raise DatasetError(f"{root}: holds {state} data set with other settings: {'; '.join(diff)}. It is not "
+                               f"overwritten: use another folder, or render this one anew with `{cmd}` (frames "
+                               f"that differ are rendered again)")
+        if not incomplete and not st.missing:
+            return root
+        what = (f"incomplete data set: {st.rendered} of {n_scenes} scenes rendered" if incomplete
+                else mf.missing_text(st.missing))
+        if not render_if_missing:
+            raise DatasetError(f"{root}: {what}; finish it with `{cmd}` (it resumes and keeps the finished frames)")
+        log.info("%s: %s; resuming", root, what)
+    render_dataset(root, n_scenes, spp, ref_spp, tuple(resolution), first_seed, progress=progress)
+    return root

@@ -93,9 +93,14 @@ def render_frame(
     return Frame(layers, meta)
 
 
-def render_to_exr(scene: Any, out: str | os.PathLike, spp: int, seed: int = 0, **kw) -> Frame:
-    """Render and write one EXR (atomically). Returns the frame."""
+def render_to_exr(scene: Any, out: str | os.PathLike, spp: int, seed: int = 0, *,
+                  meta: Mapping[str, Any] | None = None, **kw) -> Frame:
+    """Render and write one EXR (atomically). Returns the frame.
+
+    ``meta``: extra header attributes (int, float or str), added to ``frame.meta``.
+    """
     frame = render_frame(scene, spp, seed, **kw)
+    frame.meta.update(meta or {})
     write_exr(out, frame.layers, frame.meta)
     frame.path = os.fspath(out)
     return frame

@@ -268,6 +268,39 @@ def _resolving_from(mi, folder: Path | None):
 # ----------------------------------------------------------------------------- loading
 
 
+def check_resolution(resolution) -> None:
+    """ValueError unless ``resolution`` is None or two integers >= 1 (width, height)."""
+    if resolution is None:
+        return
+    res = list(resolution)
+    if len(res) != 2 or any(int(v) != v or v < 1 for v in res):
+        raise ValueError(f"resolution: expected width and height >= 1, got {res}")
+
+
+def generated_scene(scene: str, resolution: tuple[int, int] | None = None) -> tuple[str, dict]:
+    """``(name, scene dict)`` of ``"test:<name>"`` or ``"random:<seed>"`` (default size 64x64).
+
+    Raises:
+        SceneError: an unknown test scene or a seed that is not an integer >= 0.
+    """
+    from .. import scenes
+
+    kind, arg = scene.split(":", 1)
+    res = tuple(resolution) if resolution else (64, 64)
+    if kind == "test":
+        if arg not in scenes.list_test_scenes():
+            raise SceneError(f"unknown test scene {scene!r}; available: "
+                             f"{', '.join('test:' + n for n in scenes.list_test_scenes())}")
+        return scene, scenes.test_scene(arg, resolution=res)
+    try:
+        seed = int(arg)
+    except ValueError:
+        seed = -1
+    if seed < 0:
+        raise SceneError(f"{scene!r}: a procedural scene is random:<seed> with an integer seed >= 0")
+    return scene, scenes.random_scene(seed, resolution=res)
+
+
 def load_scene(scene: Any, resolution: tuple[int, int] | None = None, params: Mapping[str, Any] | None = None):
     """Load ``scene`` with kpcn's overrides. Returns ``(mi.Scene, name, notes)``.
 
@@ -293,14 +326,10 @@ def load_scene(scene: Any, resolution: tuple[int, int] | None = None, params: Ma
 
     cfg = parser.ParserConfig(mi.variant())  # the defaults of mi.load_file: parallel, merged meshes
     params = {str(k): str(v) for k, v in (params or {}).items()}
+    check_resolution(resolution)
     name, folder = "dict", None
     if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
-        from .. import scenes
-
-        kind, arg = str(scene).split(":", 1)
-        res = resolution or (64, 64)
-        name = str(scene)
-        scene = scenes.test_scene(arg, resolution=res) if kind == "test" else scenes.random_scene(int(arg), resolution=res)
+        name, scene = generated_scene(str(scene), resolution)
     if isinstance(scene, dict):
         if params:
             raise SceneError(f"{name}: scene parameters ({', '.join(params)}) apply to XML files only")

@@ -1,0 +1,295 @@
+"""Data sets know whether they are complete and what each frame was rendered with; the render CLI
+refuses bad options in one line before it renders or writes anything. Tiny real renders (8x8-12x12)."""
+import json
+import logging
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from kpcn.data import read_manifest
+from kpcn.io import read_exr, write_exr
+from kpcn.render import dataset as dataset_mod
+from kpcn.render import render_dataset
+
+SMALL = dict(spp_list=(2,), ref_spp=4, resolution=(8, 8), first_seed=0, progress=False)
+
+
+def frame_files(root):
+    return sorted(p for p in root.rglob("*.exr") if not p.name.startswith("."))
+
+
+def mtimes(paths):
+    return [p.stat().st_mtime_ns for p in paths]
+
+
+class Interrupt(KeyboardInterrupt):
+    pass
+
+
+def counting_render(monkeypatch, fail_at=None):
+    """Count the frames render_dataset writes; raise (as Ctrl-C would) at call number ``fail_at``."""
+    real = dataset_mod.render_to_exr
+    calls = []
+
+    def wrapper(scene, out, spp, *a, **kw):
+        calls.append((str(scene), os.fspath(out), spp))
+        if fail_at is not None and len(calls) == fail_at:
+            raise Interrupt("simulated kill")
+        return real(scene, out, spp, *a, **kw)
+
+    monkeypatch.setattr(dataset_mod, "render_to_exr", wrapper)
+    return calls
+
+
+# ----------------------------------------------------------------------------- 1. completeness
+
+
+@pytest.fixture
+def interrupted(mi, tmp_path, monkeypatch):
+    """A 2-scene data set killed while rendering its second scene (after scene 0's two frames)."""
+    root = tmp_path / "data"
+    counting_render(monkeypatch, fail_at=3)
+    with pytest.raises(Interrupt):
+        render_dataset(root, 2, **SMALL)
+    monkeypatch.undo()
+    return root
+
+
+def test_interrupted_dataset_is_refused_by_read_manifest(interrupted):
+    manifest = json.loads((interrupted / "manifest.json").read_text())
+    assert manifest.get("complete") is False
+    with pytest.raises(ValueError) as err:
+        read_manifest(interrupted)
+    msg = str(err.value)
+    assert str(interrupted) in msg and "1 of 2 scenes rendered" in msg
+    assert f"python -m kpcn.render dataset --out {interrupted}" in msg and "--scenes 2" in msg
+
+
+def test_ensure_dataset_resumes_an_interrupted_dataset(interrupted, monkeypatch):
+    from kpcn.render import DatasetError, ensure_dataset
+
+    args = (interrupted, 2, [2], 4, (8, 8), 0)
+    with pytest.raises(DatasetError) as err:
+        ensure_dataset(*args, render_if_missing=False, progress=False)
+    assert isinstance(err.value, ValueError)
+    assert str(interrupted) in str(err.value) and "1 of 2 scenes rendered" in str(err.value)
+
+    done = frame_files(interrupted)
+    assert len(done) == 2  # scene 0: input and reference
+    before = mtimes(done)
+    calls = counting_render(monkeypatch)
+    assert ensure_dataset(*args, progress=False) == interrupted
+    assert [c[1] for c in calls] == [str(interrupted / "random_1" / n) for n in ("input_2spp.exr", "reference.exr")]
+    assert mtimes(done) == before, "finished frames must be kept"
+    manifest = json.loads((interrupted / "manifest.json").read_text())
+    assert manifest["complete"] is True and len(manifest["scenes"]) == 2
+    assert len(read_manifest(interrupted)) == 2
+
+    calls.clear()  # complete and matching: returns without rendering
+    assert ensure_dataset(*args, render_if_missing=False, progress=False) == interrupted
+    assert ensure_dataset(*args, progress=False) == interrupted
+    assert calls == []
+
+
+def test_ensure_dataset_renders_a_missing_one_and_refuses_other_settings(mi, tmp_path, monkeypatch):
+    from kpcn.render import DatasetError, ensure_dataset
+
+    root = tmp_path / "d"
+    with pytest.raises(DatasetError, match="no data set"):
+        ensure_dataset(root, 1, [2], 4, (8, 8), 0, render_if_missing=False, progress=False)
+    assert not (root / "manifest.json").exists()
+    assert ensure_dataset(root, 1, [2], 4, (8, 8), 0, progress=False) == root
+    assert len(read_manifest(root)) == 1
+    calls = counting_render(monkeypatch)
+    # a complete data set with other settings is neither trained on nor silently overwritten
+    for flag in (False, True):
+        with pytest.raises(DatasetError) as err:
+            ensure_dataset(root, 1, [2], 4, (12, 12), 0, render_if_missing=flag, progress=False)
+        assert str(root) in str(err.value) and "resolution" in str(err.value) and "12x12" in str(err.value)
+    with pytest.raises(DatasetError, match="scenes"):
+        ensure_dataset(root, 3, [2], 4, (8, 8), 0, render_if_missing=False, progress=False)
+    assert calls == []
+
+
+def test_legacy_manifest_readable_only_when_its_files_exist(mi, tmp_path):
+    root = tmp_path / "old"
+    render_dataset(root, 1, **SMALL)
+    m = json.loads((root / "manifest.json").read_text())
+    legacy = {"ref_spp": m["ref_spp"], "spp": m["spp"], "resolution": m["resolution"],
+              "scenes": [{k: sc[k] for k in ("name", "source", "seed", "inputs", "reference")} for sc in m["scenes"]]}
+    (root / "manifest.json").write_text(json.dumps(legacy))
+    with pytest.warns(UserWarning, match="complete"):
+        assert len(read_manifest(root)) == 1
+    (root / legacy["scenes"][0]["reference"]).unlink()
+    with pytest.raises(ValueError, match="reference.exr"):
+        read_manifest(root)
+
+
+def test_ensure_dataset_resumes_a_legacy_manifest_of_fewer_scenes(mi, tmp_path, monkeypatch):
+    from kpcn.render import DatasetError, ensure_dataset
+
+    root = tmp_path / "old"
+    render_dataset(root, 1, **SMALL)
+    m = json.loads((root / "manifest.json").read_text())
+    legacy = {k: m[k] for k in ("ref_spp", "spp", "resolution")}
+    legacy["scenes"] = [{k: sc[k] for k in ("name", "source", "seed", "inputs", "reference")} for sc in m["scenes"]]
+    (root / "manifest.json").write_text(json.dumps(legacy))
+    with pytest.raises(DatasetError, match="1 of 2 scenes rendered"):  # an old interrupted render
+        ensure_dataset(root, 2, [2], 4, (8, 8), 0, render_if_missing=False, progress=False)
+    calls = counting_render(monkeypatch)
+    ensure_dataset(root, 2, [2], 4, (8, 8), 0, progress=False)
+    # only scene 1: scene 0's frames carry matching render records
+    assert [c[1] for c in calls] == [str(root / "random_1" / n) for n in ("input_2spp.exr", "reference.exr")]
+    assert json.loads((root / "manifest.json").read_text())["complete"] is True
+
+
+# ----------------------------------------------------------------------------- 2. stale frames
+
+
+def test_new_settings_rerender_every_stale_frame(mi, tmp_path, caplog):
+    root = tmp_path / "data"
+    render_dataset(root, 1, spp_list=(2,), ref_spp=4, resolution=(8, 8), first_seed=0, progress=False)
+    with caplog.at_level(logging.INFO, logger="kpcn.render"):
+        render_dataset(root, 1, spp_list=(2,), ref_spp=8, resolution=(12, 12), first_seed=0, progress=False)
+    files = frame_files(root)
+    assert len(files) == 2
+    for p in files:
+        f = read_exr(p)
+        assert f.shape == (12, 12), p
+        assert f.meta["spp"] == (8 if p.name == "reference.exr" else 2)
+    m = json.loads((root / "manifest.json").read_text())
+    assert m["complete"] is True and m["resolution"] == [12, 12] and m["ref_spp"] == 8
+    frames = m["scenes"][0]["frames"]
+    assert {r["resolution"][0] for r in frames.values()} == {12}
+    assert frames["random_0/reference.exr"]["spp"] == 8
+    rerendered = [r.getMessage() for r in caplog.records if "re-render" in r.getMessage()]
+    assert len(rerendered) == 2 and any("8x8" in m and "12x12" in m for m in rerendered)
+
+
+def test_only_frames_whose_record_differs_are_rerendered(mi, tmp_path, monkeypatch):
+    root = tmp_path / "data"
+    render_dataset(root, 1, **SMALL)
+    inp, ref = root / "random_0" / "input_2spp.exr", root / "random_0" / "reference.exr"
+    before = mtimes([inp])
+    calls = counting_render(monkeypatch)
+    render_dataset(root, 1, **{**SMALL, "ref_spp": 6})
+    assert [c[1] for c in calls] == [str(ref)] and mtimes([inp]) == before
+    assert read_exr(ref).meta["spp"] == 6
+
+    # a frame without a record (another tool, an older kpcn) is not trusted
+    f = read_exr(inp)
+    write_exr(inp, f.layers, {k: f.meta[k] for k in ("spp", "seed", "scene")})
+    calls.clear()
+    render_dataset(root, 1, **{**SMALL, "ref_spp": 6})
+    assert [c[1] for c in calls] == [str(inp)]
+
+
+def test_changed_scene_generator_rerenders(mi, tmp_path, monkeypatch):
+    from kpcn import scenes
+
+    root = tmp_path / "data"
+    render_dataset(root, 1, **SMALL)
+    real = scenes.random_scene
+
+    def changed(seed, resolution=(128, 128)):
+        d = real(seed, resolution)
+        d["kpcn_test_extra_light"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.1, 0.2, 0.3]}}
+        return d
+
+    monkeypatch.setattr(scenes, "random_scene", changed)
+    calls = counting_render(monkeypatch)
+    render_dataset(root, 1, **SMALL)
+    assert len(calls) == 2, "frames of a scene the generator now makes differently must be re-rendered"
+
+
+# ----------------------------------------------------------------------------- 3. the command line
+
+
+def run_cli(*args, cwd):
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run([sys.executable, "-m", "kpcn.render", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env)
+
+
+BAD_FRAME = [
+    (["--spp", "0"], "--spp"),
+    (["--spp", "-4"], "--spp"),
+    (["--spp", "1"], "--spp"),
+    (["--resolution", "0", "0"], "--resolution"),
+    (["--resolution", "8", "-1"], "--resolution"),
+    (["--ref-spp", "1"], "--ref-spp"),
+    (["--ref-spp", "-8"], "--ref-spp"),
+    (["--max-depth", "0"], "--max-depth"),
+    (["--seed", "-1"], "--seed"),
+]
+
+
+@pytest.mark.parametrize("extra,option", BAD_FRAME, ids=[" ".join(a) for a, _ in BAD_FRAME])
+def test_cli_frame_bad_option_is_one_line_exit_2_and_writes_nothing(tmp_path, extra, option):
+    # a repeated flag: argparse keeps the last value, so `extra` overrides the valid defaults
+    args = ["frame", "test:glass", "--spp", "4", "--resolution", "8", "8", "--out", tmp_path / "n.exr"]
+    r = run_cli(*args, *extra, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and option in lines[0], r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+BAD_SCENES = ["missing.xml", "broken.xml", "nomesh.xml", "test:nope", "random:abc"]
+
+
+@pytest.mark.parametrize("scene", BAD_SCENES)
+def test_cli_bad_scene_is_one_line(mi, tmp_path, scene):
+    (tmp_path / "broken.xml").write_text('<scene version="3.0.0">\n  <shape type="sphere">\n</scene>\n')
+    (tmp_path / "nomesh.xml").write_text(
+        '<scene version="3.0.0"><sensor type="perspective"/>'
+        '<shape type="ply"><string name="filename" value="meshes/gone.ply"/></shape></scene>')
+    r = run_cli("frame", scene, "--spp", "4", "--resolution", "8", "8", "--out", "n.exr", "--ref-spp", "8", cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
+    assert len(errors) == 1 and scene.split(".")[0] in errors[0], r.stderr
+    assert not (tmp_path / "n.exr").exists() and not (tmp_path / "n_ref.exr").exists()
+
+
+def test_cli_debug_shows_the_traceback(tmp_path):
+    r = run_cli("frame", "test:glass", "--spp", "0", "--out", tmp_path / "n.exr", "--debug", cwd=tmp_path)
+    assert r.returncode != 0 and "Traceback" in r.stderr and "--spp" in r.stderr
+
+
+BAD_DATASET = [
+    (["--spp", "1"], "spp"),
+    (["--spp", "0", "4"], "spp"),
+    (["--ref-spp", "1"], "ref-spp"),
+    (["--ref-spp", "0"], "ref-spp"),
+    (["--resolution", "0", "0"], "resolution"),
+    (["--scenes", "0"], "scenes"),
+]
+
+
+@pytest.mark.parametrize("extra,option", BAD_DATASET, ids=[" ".join(a) for a, _ in BAD_DATASET])
+def test_cli_dataset_bad_option_is_one_line_exit_2_and_writes_nothing(tmp_path, extra, option):
+    r = run_cli("dataset", "--out", tmp_path / "ds", "--scenes", "1", "--spp", "2", "--ref-spp", "4",
+                "--resolution", "8", "8", *extra, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and option in lines[0], r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
+    args = ("dataset", "--out", tmp_path / "ds", "--scenes", "1", "--spp", "2", "--ref-spp", "4",
+            "--resolution", "8", "8")
+    r = run_cli(*args, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert len(read_manifest(tmp_path / "ds")) == 1
+    r = run_cli(*args[:-2], "12", "12", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.count("re-render") == 2
+    assert all(read_exr(p).shape == (12, 12) for p in frame_files(tmp_path / "ds"))
+    assert np.isfinite(read_exr(tmp_path / "ds" / "random_0" / "reference.exr")["color"]).all()
