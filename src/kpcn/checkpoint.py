@@ -7,7 +7,8 @@ Two kinds of file:
   :func:`kpcn.models.create_model` rebuilds the architecture. Loading parses
   the file; nothing is unpickled. The shipped weights and a run's final
   ``model.safetensors`` are of this kind.
-* **Training state** — ``*.pt`` (``checkpoints/latest.pt``): weights, optimiser
+* **Training state** — ``*.pt`` (a run's ``checkpoints/latest.pt`` and
+  ``checkpoints/step_<N>.pt``, each written atomically): weights, optimiser
   state, step, stage, the resolved config and the RNG states, saved with
   ``torch.save`` but holding only tensors, numbers, strings, lists and dicts,
   so it loads with ``torch.load(weights_only=True)``.

@@ -13,12 +13,26 @@ names the nearest valid one).
 """
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 from .config import ConfigError, from_dict
 
 __all__ = ["RunConfig", "DataConfig", "TrainConfig", "check_model_section"]
+
+
+def _at_least(section: str, obj, key: str, low: int) -> None:
+    v = getattr(obj, key)
+    if v is not None and v < low:
+        raise ConfigError(f"{section}.{key}: must be >= {low}, got {v!r}")
+
+
+def _positive(section: str, obj, key: str) -> None:
+    v = getattr(obj, key)
+    if v is not None and not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{section}.{key}: must be a number > 0, got {v!r}")
 
 
 @dataclass
@@ -41,6 +55,21 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.sampling not in ("importance", "uniform"):
             raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
+        for key in ("patch_size", "patches_per_frame", "render_scenes"):
+            _at_least("data", self, key, 1)
+        for key in ("val_scenes", "render_first_seed"):
+            _at_least("data", self, key, 0)
+        _at_least("data", self, "render_ref_spp", 2)
+        if self.spp is not None:
+            if not self.spp:
+                raise ConfigError("data.spp: must list at least one sample count (null: all)")
+            if min(self.spp) < 1:
+                raise ConfigError(f"data.spp: every sample count must be >= 1, got {self.spp!r}")
+        if not self.render_spp or min(self.render_spp) < 2:
+            raise ConfigError(f"data.render_spp: every sample count must be >= 2, got {self.render_spp!r}")
+        res = self.render_resolution
+        if len(res) != 2 or min(res) < 1:
+            raise ConfigError(f"data.render_resolution: expected [width, height] >= 1, got {res!r}")
 
 
 @dataclass
@@ -54,7 +83,8 @@ class TrainConfig:
     stage2_loss: str | None = None  #: None: same as loss
     grad_clip: float = 1.0
     val_every: int = 250
-    ckpt_every: int = 100
+    ckpt_every: int = 100  #: also writes checkpoints/step_<N>.pt
+    keep_checkpoints: int = 3  #: the last K checkpoints/step_<N>.pt kept beside latest.pt (0: latest.pt only)
     log_every: int = 10
     seed: int = 0
     threads: int | None = None  #: torch CPU threads (None: PyTorch's default)
@@ -67,6 +97,18 @@ class TrainConfig:
             v = getattr(self, key)
             if v is not None and v not in list_losses():
                 raise ConfigError(f"train.{key}: unknown loss {v!r}; known: {', '.join(list_losses())}")
+        for key in ("stage1_steps", "stage2_steps", "keep_checkpoints", "seed"):
+            _at_least("train", self, key, 0)
+        for key in ("batch_size", "val_every", "ckpt_every", "log_every", "threads"):
+            _at_least("train", self, key, 1)
+        if self.stage1_steps + self.stage2_steps < 1:
+            raise ConfigError("train.stage1_steps + train.stage2_steps: must be >= 1, got 0")
+        for key in ("lr", "stage2_lr"):
+            _positive("train", self, key)
+        if not (math.isfinite(self.grad_clip) and self.grad_clip >= 0):
+            raise ConfigError(f"train.grad_clip: must be >= 0 (0: off), got {self.grad_clip!r}")
+        if not (self.device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", self.device)):
+            raise ConfigError(f"train.device: expected auto, cpu, cuda or cuda:<index>, got {self.device!r}")
 
 
 def check_model_section(model: dict) -> dict:
@@ -92,6 +134,12 @@ class RunConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
+        name = PurePath(self.name)
+        if not name.parts or name.is_absolute() or ".." in name.parts or self.name.strip() != self.name:
+            raise ConfigError(f"name: must be a folder name under results_dir (not empty, not absolute, "
+                              f"no '.' or '..'), got {self.name!r}")
+        if not self.results_dir:
+            raise ConfigError("results_dir: must not be empty (use '.' for the current folder)")
         self.model = check_model_section(self.model)
 
     @property
