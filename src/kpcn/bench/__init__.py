@@ -6,6 +6,8 @@ same run (a ratio):
 * ``render``  — the one-pass split integrator against Mitsuba's ``path`` (:mod:`.render`)
 * ``kernel``  — the kernel-apply op against ``F.unfold`` (:mod:`.kernel`)
 * ``train``   — training throughput of configs, patches/s (:mod:`.train`)
+* ``aov``     — light groups: the sum of kpcn's shared-kernel results and of OIDN's
+  per-group results against each one's denoised beauty (:mod:`.aov`)
 * ``denoise`` — whole-frame denoising against Intel OIDN; ``--skip`` the time saved
   by leaving out what a scene does not need (:mod:`.denoise`, :mod:`.skip`)
 
@@ -32,6 +34,7 @@ SUBCOMMANDS: dict[str, Callable[[list[str]], int]] = {
     "kernel": _lazy("kernel", "bench_kernel"),
     "train": _lazy("train", "bench_train"),
     "denoise": _lazy("denoise", "bench_denoise"),
+    "aov": _lazy("aov", "bench_aov"),
 }
 
 def main(argv: list[str] | None = None) -> int:

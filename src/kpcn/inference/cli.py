@@ -58,6 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto)")
     p.add_argument("--half", action="store_true", help="float16 autocast (CUDA only)")
     p.add_argument("--no-skip", action="store_true", help="run the network on every tile and branch")
+    p.add_argument("--layers", nargs="+", default=None, metavar="NAME",
+                   help="also denoise these light groups (NAME.diffuse + NAME.specular) or other 3-channel layers "
+                        "with the beauty's kernels, written to the output beside the colour (kernel predictors only)")
+    p.add_argument("--aov-branch", default=None,
+                   help="branch whose kernels filter --layers that are not light groups (default: the first)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     return p
 
@@ -116,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 res = denoise_result(inp, net, dst, tile=args.tile, device=args.device, half=args.half,
-                                     skip=not args.no_skip)
+                                     skip=not args.no_skip, layers=args.layers, aov_branch=args.aov_branch)
             for wmsg in caught:
                 print(f"warning: {wmsg.message}", file=sys.stderr)
         except (MissingLayerError, ExrError, FileNotFoundError, ValueError, OSError, RuntimeError) as exc:

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ..io import Frame, read_exr, sanitize_layers, write_exr
+from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
 from .tiling import plan_tiles, tile_size
 from .weights import describe, load_model, resolve_device
@@ -119,6 +120,7 @@ class DenoiseResult:
     stats: DenoiseStats
     model_name: str = ""
     out_path: str | None = None
+    layers: dict[str, np.ndarray] = field(default_factory=dict)  #: other layers denoised with the beauty's kernels
 
 
 def _source_path(src) -> str | None:
@@ -226,8 +228,10 @@ def denoise_result(
     half: bool = False,
     skip: bool = True,
     trust_pickle: bool = False,
+    layers=None,
+    aov_branch: str | None = None,
 ) -> DenoiseResult:
-    """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour and :class:`DenoiseStats`)."""
+    """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour, ``layers`` and :class:`DenoiseStats`)."""
     if tile is not None and (isinstance(tile, bool) or int(tile) != tile):
         raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame), got {tile!r}")
     if out_path is not None:  # refused before any work, not after it
@@ -240,6 +244,10 @@ def denoise_result(
     spec = net.input_spec
     frame, read_s = _as_frame(exr_path_or_frame, spec.layers)
     h, w = _validate(frame, spec.layers)
+    plans = plan_aovs(frame, list(layers), spec, aov_branch) if layers else []
+    if plans and not net.zero_preserving:
+        raise ValueError(f"denoise: layers=... needs a kernel-predicting model; {describe(net)} predicts no kernels")
+    aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
     use_half = bool(half) and dev.type == "cuda"
@@ -254,7 +262,9 @@ def denoise_result(
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
 
-    active = [b for b in spec.branches if not (skip and spec.branch_is_zero(frame, b))]
+    # branches whose kernels filter plain layers run everywhere (on a zero branch a kernel predictor's output is 0)
+    needed = {b for p in plans if not p.group for b in p.parts}
+    active = [b for b in spec.branches if b in needed or not (skip and spec.branch_is_zero(frame, b))]
     stats.branches_skipped = tuple(b for b in spec.branches if b not in active)
     depth_scale = spec.frame_depth_scale(frame)
     depth_scale = depth_scale.to(dev) if depth_scale is not None else None
@@ -278,13 +288,15 @@ def denoise_result(
             if var_in is not None and not np.any(frame["depth"][crop] > 0):
                 if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * color_in[crop])):
                     out[t.interior] = np.maximum(color_in[t.interior], 0.0)
+                    for p in plans:
+                        aov_out[p.name][t.interior] = noisy_aov(frame, p, t.interior)
                     stats.tiles_passed_through += 1
                     for b in spec.branches:
                         stats.branch_tiles_skipped[b] += 1
                     continue
             run = list(active)
             if skip and net.zero_preserving:
-                run = [b for b in active if not spec.branch_is_zero(frame, b, crop)]
+                run = [b for b in active if b in needed or not spec.branch_is_zero(frame, b, crop)]
             for b in spec.branches:
                 stats.branch_tiles_run[b] += b in run
                 stats.branch_tiles_skipped[b] += b not in run
@@ -300,6 +312,9 @@ def denoise_result(
                 stats.tiles_fp32_fallback += 1
             iy, ix = t.interior_in_crop
             out[t.interior] = res["color"][0, :, iy, ix].float().permute(1, 2, 0).cpu().numpy()
+            if plans:
+                for name, v in denoise_aovs(net, inputs, res, context, frame, crop, run, plans, dev).items():
+                    aov_out[name][t.interior] = v[0, :, iy, ix].float().permute(1, 2, 0).cpu().numpy()
             stats.tiles_run += 1
             del inputs, res
     if dev.type == "cuda":
@@ -308,7 +323,7 @@ def denoise_result(
     stats.seconds = time.perf_counter() - t0
     stats.peak_rss_mb = peak_rss_mb()
 
-    result = DenoiseResult(out, stats, describe(net))
+    result = DenoiseResult(out, stats, describe(net), layers=aov_out)
     if out_path is not None:
         t1 = time.perf_counter()
         _write_output(out_path, out, frame, result)
@@ -318,7 +333,7 @@ def denoise_result(
 
 
 def _write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResult) -> None:
-    layers = {"color": color}
+    layers = {"color": color, **result.layers}
     for name in ("albedo", "normal", "depth"):
         if name in frame:
             layers[name] = frame[name]
@@ -344,8 +359,15 @@ def denoise(
     half: bool = False,
     skip: bool = True,
     trust_pickle: bool = False,
-) -> np.ndarray:
+    layers=None,
+    aov_branch: str | None = None,
+):
     """Denoise one render and return its colour ``(H, W, 3)`` float32 (finite, >= 0).
+
+    With ``layers``, returns ``{"color": ..., name: ...}``: the colour and each
+    listed layer denoised with the kernels predicted for the beauty (see
+    :mod:`kpcn.inference.aovs`: light groups ``g.diffuse``/``g.specular`` add up to
+    the denoised beauty; another layer is filtered with ``aov_branch``'s kernels).
 
     Args:
         exr_path_or_frame: a multi-layer EXR path, a :class:`~kpcn.io.Frame`, or a
@@ -366,6 +388,10 @@ def denoise(
         skip: leave out zero branches, zero tiles and no-hit converged tiles
             (see the module docstring); ``False`` runs the network everywhere.
         trust_pickle: allow a ``.pt`` checkpoint that needs full unpickling (runs its code).
+        layers: names of light groups or other three-channel layers to denoise with
+            the beauty's kernels (kernel predictors only); written to ``out_path`` too.
+        aov_branch: the branch whose kernels filter layers that are not light groups
+            (default: the spec's first branch).
 
     Raises:
         MissingLayerError: the input lacks layers the model needs (names them and those found).
@@ -373,5 +399,6 @@ def denoise(
         ValueError: ``out_path`` is the input (names both); raised before any denoising.
         IsADirectoryError / NotADirectoryError: ``out_path`` is a folder, or under a file; raised first too.
     """
-    return denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
-                          trust_pickle=trust_pickle).color
+    res = denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
+                         trust_pickle=trust_pickle, layers=layers, aov_branch=aov_branch)
+    return {"color": res.color, **res.layers} if layers else res.color

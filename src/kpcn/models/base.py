@@ -89,6 +89,23 @@ class DenoiserModel(nn.Module):
         """
         return getattr(self, name)(x)
 
+    def branch_kernels(self, name: str, x: torch.Tensor, context: Any = None) -> torch.Tensor:
+        """The per-pixel kernels ``(B, k*k, H, W)`` a kernel predictor applies to branch ``name``.
+
+        Only ``zero_preserving`` kernel predictors have them; the default uses
+        the branch submodule's ``kernels(x)``. Others raise ``NotImplementedError``.
+        """
+        branch = getattr(self, name)
+        if not self.zero_preserving or not hasattr(branch, "kernels"):
+            raise NotImplementedError(f"{self.name or type(self).__name__} predicts no kernels: it cannot denoise "
+                                      "other layers with the beauty's kernels")
+        return branch.kernels(x)
+
+    @property
+    def kernel_size(self) -> int:
+        """``k`` of the predicted ``k x k`` kernels (kernel predictors)."""
+        return int(self.config.kernel_size)
+
     def forward(self, inputs: dict[str, torch.Tensor], context: Any = None) -> dict[str, torch.Tensor]:
         """Every present branch through :meth:`run_branch`, then the spec's reconstruction.
 

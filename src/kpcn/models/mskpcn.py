@@ -128,12 +128,15 @@ class MSKPCNBranch(nn.Module):
             self.tail[-1].bias.copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
         self.apply_kernels = KernelApply(k, "replicate")
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def kernels(self, x: torch.Tensor) -> torch.Tensor:
+        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous)."""
         h = torch.relu(self.head(transform_input(x, self.cfg.input_transform)))
         z = self.tail(self.blocks(h))
         s = self.cfg.logit_scale
-        weights = torch.softmax(torch.tanh(z / s) * s, dim=1)
-        return self.apply_kernels(x[:, :3].contiguous(), weights.contiguous())
+        return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.apply_kernels(x[:, :3].contiguous(), self.kernels(x))
 
 
 class MSKPCN(DenoiserModel):

@@ -161,6 +161,10 @@ class UNetBranch(nn.Module):
         return self.summary(torch.cat([mean, std], dim=1))
 
     def forward(self, x: torch.Tensor, summary: torch.Tensor | None = None) -> torch.Tensor:
+        return self.apply_kernels(x[:, :3].contiguous(), self.kernels(x, summary))
+
+    def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None) -> torch.Tensor:
+        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous)."""
         h_in, w_in = x.shape[-2:]
         feats = self.encode(x)
         h = feats[-1]
@@ -172,8 +176,7 @@ class UNetBranch(nn.Module):
             h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
         s = self.cfg.logit_scale
         logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
-        weights = torch.softmax(logits, dim=1)
-        return self.apply_kernels(x[:, :3].contiguous(), weights.contiguous())
+        return torch.softmax(logits, dim=1).contiguous()
 
 
 class UNetKPCN(DenoiserModel):
@@ -210,6 +213,9 @@ class UNetKPCN(DenoiserModel):
     def run_branch(self, name: str, x: torch.Tensor, context=None) -> torch.Tensor:
         """One branch, with its whole-frame summary from ``context`` when given (else its own)."""
         return getattr(self, name)(x, (context or {}).get(name))
+
+    def branch_kernels(self, name: str, x: torch.Tensor, context=None) -> torch.Tensor:
+        return getattr(self, name).kernels(x, (context or {}).get(name))
 
 
 @register_model("unet_kpcn", config=UNetConfig)

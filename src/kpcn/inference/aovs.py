@@ -1,0 +1,117 @@
+"""Denoise other layers of a frame with the kernels predicted for its beauty.
+
+A kernel predictor's per-pixel kernels can filter any layer of the same frame
+(production renderers write light groups and AOVs). ``denoise(path,
+layers=[...])`` does it, per branch:
+
+* a **light group** ``g`` — layers ``g.diffuse`` and ``g.specular`` for the
+  split input specs, or a colour layer ``g`` for ``color_albedo_normal`` — is
+  split like the beauty and each part filtered with its branch's kernels:
+
+  - diffuse (linear in the radiance): ``(albedo + eps) · K_d ⊛ (g.diffuse / (albedo + eps))``;
+  - specular: the beauty's specular branch works in log space, which is not
+    linear, so the group gets the share ``K_s ⊛ g.specular / K_s ⊛ specular``
+    of the beauty's denoised specular;
+  - colour (``color_albedo_normal``): ``K ⊛ g``.
+
+  So when the groups add up to the beauty, the denoised groups add up to the
+  denoised beauty (to float rounding), which per-layer denoising (OIDN's way)
+  does not give;
+* any other layer ``x`` (three channels) is filtered directly with the kernels
+  of one branch (``aov_branch``, the first one by default): a constant layer
+  stays constant, since the kernels are normalised and replicate the border.
+
+Only ``zero_preserving`` kernel predictors have kernels; others are refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..constants import EPS
+from ..inputs import SPECULAR_LOG_MAX, InputSpec
+from ..io import Frame, MissingLayerError
+
+__all__ = ["AovPlan", "plan_aovs", "denoise_aovs", "noisy_aov"]
+
+
+@dataclass(frozen=True)
+class AovPlan:
+    """One requested layer: ``parts`` maps a branch to the frame layer filtered with its kernels."""
+
+    name: str
+    parts: dict[str, str]
+    group: bool  #: a light group (split like the beauty) rather than a layer filtered directly
+
+
+def plan_aovs(frame: Frame, names, spec: InputSpec, aov_branch: str | None = None) -> list[AovPlan]:
+    """What each requested layer is and which frame layers it reads (missing ones are named)."""
+    branch = aov_branch or spec.branches[0]
+    if branch not in spec.branches:
+        raise ValueError(f"denoise: aov_branch {branch!r} is not a branch of input spec {spec.name!r} ({spec.branches})")
+    plans, missing = [], []
+    for name in names:
+        split = {b: f"{name}.{b}" for b in spec.branches}
+        if len(spec.branches) > 1 and all(layer in frame for layer in split.values()):
+            plans.append(AovPlan(name, split, True))
+        elif name in frame:
+            plans.append(AovPlan(name, {branch: name}, len(spec.branches) == 1))
+        else:
+            missing.append(name if len(spec.branches) == 1 else f"{name} (or {' and '.join(split.values())})")
+            continue
+        for layer in plans[-1].parts.values():
+            if frame[layer].ndim != 3 or frame[layer].shape[2] != 3:
+                raise ValueError(f"{frame.path or 'frame'}: layer {layer!r} must have 3 channels, got {frame[layer].shape}")
+    if missing:
+        raise MissingLayerError(frame.path or "frame", missing, frame.layers)
+    return plans
+
+
+def noisy_aov(frame: Frame, plan: AovPlan, region) -> np.ndarray:
+    """The noisy value of a requested layer over ``region`` (its parts summed)."""
+    return sum(np.maximum(frame[layer][region], 0.0) if plan.group else frame[layer][region]
+               for layer in plan.parts.values())
+
+
+def _t(frame: Frame, layer: str, crop, device) -> torch.Tensor:
+    a = np.ascontiguousarray(frame[layer][crop].transpose(2, 0, 1))
+    return torch.from_numpy(a)[None].to(device)
+
+
+def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run, plans: list[AovPlan],
+                 device) -> dict[str, torch.Tensor]:
+    """The requested layers over one crop, ``{name: (1, 3, h, w)}``, with the kernels of the branches in ``run``.
+
+    ``inputs`` and ``res`` are the model's inputs and outputs on the crop; a
+    branch not in ``run`` is zero on the crop (its parts contribute 0).
+    """
+    kernels, shares = {}, {}
+    for b in run:
+        kernels[b] = net.branch_kernels(b, inputs[b], context)
+    apply = {b: getattr(net, b).apply_kernels for b in run}
+    albedo = inputs["albedo"]
+    if "specular" in run and any(p.group and "specular" in p.parts for p in plans):
+        total = apply["specular"](_t(frame, "specular", crop, device).clamp_min(0.0).contiguous(), kernels["specular"])
+        beauty = torch.expm1(res["specular"].clamp(0.0, SPECULAR_LOG_MAX))
+        shares["specular"] = (total, beauty)
+    out = {}
+    for plan in plans:
+        value = torch.zeros_like(albedo)
+        for b, layer in plan.parts.items():
+            if b not in run:
+                continue
+            x = _t(frame, layer, crop, device)
+            if not plan.group:
+                value = value + apply[b](x.contiguous(), kernels[b])
+            elif b == "diffuse":
+                value = value + (albedo + EPS) * apply[b]((x.clamp_min(0.0) / (albedo + EPS)).contiguous(), kernels[b])
+            elif b == "specular":
+                total, beauty = shares["specular"]
+                part = apply[b](x.clamp_min(0.0).contiguous(), kernels[b])
+                value = value + torch.where(total > 0, beauty * part / total.clamp_min(1e-30), torch.zeros_like(part))
+            else:  # a linear branch (color_albedo_normal)
+                value = value + apply[b](x.clamp_min(0.0).contiguous(), kernels[b])
+        out[plan.name] = value
+    return out
