@@ -53,440 +53,68 @@ DistributedDataParallel (gloo on CPU, nccl on GPU); each rank takes its share
 of every batch through a ``DistributedSampler`` and only rank 0 writes. The
 checks run on every rank and the ranks agree on their outcome, so a mistake
 stops all of them instead of leaving some waiting.
+
+This module is the entry point (:func:`train`, :func:`main`); its parts live in
+:mod:`kpcn.distributed` (ranks, cross-rank agreement), :mod:`kpcn.runs` (the
+run folder, resuming), :mod:`kpcn.train_data` (the data set and its split) and
+:mod:`kpcn.train_steps` (batches, losses, validation). Their names stay
+importable from here.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import os
-import pickle
-import re
-import shutil
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch.utils.data import DataLoader, DistributedSampler
 
-from .checkpoint import (
-    CheckpointError,
-    load_train_state,
-    save_train_state,
-    save_weights,
-    set_rng_state,
-    weights_sha256,
-)
+from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
-from .data import FrameDataset, PatchDataset, read_manifest
-from .io import atomic_write
-from .losses import create_loss
-from .metrics import all_metrics, tonemap
-from .models import create_model
+from .data import FrameDataset, PatchDataset
+from .distributed import Dist, _agree, _portable, _rank_of_world, setup_distributed
+from .runs import (
+    _STEP_FILE,
+    RUN_DIRS,
+    RUN_FILES,
+    RunFolderError,
+    _check_resumable,
+    _check_run_folder,
+    _clear_run,
+    _flat,
+    _model_differences,
+    _restore_optimizer,
+    _truncate_metrics,
+    _without_path,
+    find_resume_state,
+    step_checkpoints,
+)
 from .train_config import RunConfig
+from .train_data import _is_default_dataset, ensure_dataset, split_pairs
+from .train_steps import (
+    _make_optimizer,
+    _set_seed,
+    _tonemap_t,
+    _unwrap,
+    batches,
+    build_model,
+    compute_loss,
+    model_inputs,
+    stage_of,
+    validate,
+)
 
 log = logging.getLogger("kpcn.train")
 
 __all__ = ["train", "build_model", "main", "RunConfig", "RunFolderError"]
 
-
-class RunFolderError(ValueError):
-    """The run folder cannot be used as asked (an earlier run is there); the message names it and the way out."""
-
-
-# ----------------------------------------------------------------------------- distributed
-
-
-@dataclass
-class Dist:
-    rank: int = 0
-    world: int = 1
-    device: torch.device = torch.device("cpu")
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def setup_distributed(device: str = "auto") -> Dist:
-    """Initialise ``torch.distributed`` when launched by torchrun; pick the device."""
-    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
-    if "RANK" in os.environ and "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
-        if not dist.is_initialized():
-            dist.init_process_group("nccl" if use_cuda else "gloo")
-        rank, world = dist.get_rank(), dist.get_world_size()
-        local = int(os.environ.get("LOCAL_RANK", rank))
-        dev = torch.device(f"cuda:{local}") if use_cuda else torch.device("cpu")
-        if use_cuda:
-            torch.cuda.set_device(dev)
-        return Dist(rank, world, dev)
-    return Dist(0, 1, torch.device("cuda" if use_cuda else "cpu"))
-
-
-def _rank_of_world() -> int:
-    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
-
-
-def _portable(exc: BaseException) -> BaseException:
-    """``exc`` if it survives pickling (to send it to the other ranks), else a RuntimeError with its text."""
-    try:
-        pickle.loads(pickle.dumps(exc))
-        return exc
-    except Exception:
-        return RuntimeError(f"{type(exc).__name__}: {exc}")
-
-
-def _agree(fn: Callable[[], Any]) -> Any:
-    """``fn()`` on every rank; when it fails on any rank, every rank raises (nobody is left waiting).
-
-    Rank 0 raises its own error when it has one, else the first failing rank's;
-    the other ranks raise rank 0's error when rank 0 failed (marked with
-    ``kpcn_echo`` so that only rank 0 prints it), else their own.
-    """
-    err: BaseException | None = None
-    out = None
-    try:
-        out = fn()
-    except Exception as exc:
-        err = exc
-    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
-        errs: list = [None] * dist.get_world_size()
-        dist.all_gather_object(errs, None if err is None else _portable(err))
-        rank = dist.get_rank()
-        if rank != 0 and errs[0] is not None:
-            echo = errs[0]
-            echo.kpcn_echo = True
-            raise echo
-        if err is None:
-            other = next((e for e in errs if e is not None), None)
-            if other is not None:
-                other.kpcn_echo = rank != 0
-                raise other
-    if err is not None:
-        raise err
-    return out
-
-
-# ----------------------------------------------------------------------------- model
-
-
-def build_model(cfg: RunConfig) -> torch.nn.Module:
-    """The model ``cfg.model`` names, built with its hyper-parameters."""
-    return create_model(**cfg.model)
-
-
-def _unwrap(model):
-    return model.module if hasattr(model, "module") else model
-
-
-# ----------------------------------------------------------------------------- data
-
-
-def _is_default_dataset(status, d) -> bool:
-    """Whether the data set ``status`` describes is the built-in one ``data.render_*`` asks for (or part of it)."""
-    from .render import manifest as mf
-
-    want = mf.settings(d.render_scenes, d.render_spp, d.render_ref_spp, d.render_resolution, d.render_first_seed)
-    have = dict(status.settings)
-    if status.legacy and status.rendered < d.render_scenes:  # maybe an interrupted render of it
-        have["n_scenes"] = d.render_scenes
-    return not mf.differences(have, want)
-
-
-def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) -> Path:
-    """The training data folder ``data.root``.
-
-    A data set already there is used as it is (its own settings; :func:`kpcn.data.read_manifest`
-    checks it is complete). When there is none — or there is an interrupted render of
-    the built-in data set ``data.render_*`` describes — :func:`kpcn.render.ensure_dataset`
-    renders or finishes it (if ``data.render_if_missing``; else a :class:`~kpcn.render.DatasetError`
-    with the command that does). Under torchrun rank 0 renders while the others wait, and an
-    error on rank 0 stops every rank.
-    """
-    from .render import dataset_status
-    from .render import ensure_dataset as ensure_rendered
-
-    d = cfg.data
-    root = Path(d.root)
-
-    def work() -> None:
-        if not is_main:
-            return
-        status = dataset_status(root)
-        if status.manifest is not None and not _is_default_dataset(status, d):
-            log.info("training on the data set in %s", root)
-            return
-        ensure_rendered(root, d.render_scenes, d.render_spp, d.render_ref_spp, tuple(d.render_resolution),
-                        d.render_first_seed, render_if_missing=d.render_if_missing, progress=progress)
-
-    _agree(work)  # the other ranks wait here for rank 0
-    return root
-
-
-def split_pairs(cfg: RunConfig, progress: bool = True):
-    """``(train_pairs, val_pairs)``: the validation frames are ``data.val_root``'s or the last ``data.val_scenes`` scenes."""
-    from .render import DatasetError
-
-    root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
-    pairs = read_manifest(root, cfg.data.spp)
-    if cfg.data.val_root:
-        try:
-            val_pairs = read_manifest(cfg.data.val_root, cfg.data.spp)
-        except FileNotFoundError as exc:
-            raise DatasetError(f"data.val_root: {exc}") from None
-        return pairs, val_pairs
-    scenes = sorted({p.scene for p in pairs})
-    n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
-    val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
-    return [p for p in pairs if p.scene not in val_scenes], [p for p in pairs if p.scene in val_scenes]
-
-
-# ----------------------------------------------------------------------------- training
-
-
-def stage_of(step: int, cfg: RunConfig) -> int:
-    return 1 if step < cfg.train.stage1_steps else 2
-
-
-def model_inputs(model, batch: dict) -> dict:
-    """The entries of ``batch`` the model reads: its spec's branches and the albedo."""
-    return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
-
-
-def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -> torch.Tensor:
-    """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour."""
-    if stage == 1:
-        loss = create_loss(cfg.train.loss)
-        return sum(loss(out[b], batch[f"y_{b}"]) for b in branches)
-    loss = create_loss(cfg.train.stage2_loss or cfg.train.loss)
-    return loss(out["color"], batch["y_color"])
-
-
-def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
-    """Yield ``(step, batch)`` from ``start_step``; the batch of a step depends only on seed and step."""
-    per_rank = max(1, cfg.train.batch_size // d.world)
-    steps_per_epoch = max(1, len(ds) // (per_rank * d.world))
-    total = cfg.train.stage1_steps + cfg.train.stage2_steps
-    step = start_step
-    while step < total:
-        epoch, within = divmod(step, steps_per_epoch)
-        ds.resample(epoch)
-        sampler = DistributedSampler(ds, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.train.seed, drop_last=True)
-        sampler.set_epoch(epoch)
-        loader = DataLoader(ds, batch_size=per_rank, sampler=sampler, drop_last=True)
-        for i, batch in enumerate(loader):
-            if i < within:
-                continue
-            if step >= total or i >= steps_per_epoch:
-                break
-            yield step, batch
-            step += 1
-
-
-@torch.no_grad()
-def validate(model, frames: FrameDataset, device) -> dict[str, float]:
-    """Mean metrics of the full-frame reconstruction over the validation frames."""
-    model.eval()
-    sums: dict[str, float] = {}
-    for i in range(len(frames)):
-        f = frames[i]
-        inputs = {k: v[None].to(device) for k, v in model_inputs(model, f).items()}
-        out = _unwrap(model)(inputs)
-        pred = out["color"][0].permute(1, 2, 0).cpu().numpy()
-        ref = f["y_color"].permute(1, 2, 0).numpy()
-        for k, v in all_metrics(pred, ref).items():
-            sums[k] = sums.get(k, 0.0) + v
-        noisy = f["noisy_color"].permute(1, 2, 0).numpy()
-        sums["noisy_relmse"] = sums.get("noisy_relmse", 0.0) + all_metrics(noisy, ref)["relmse"]
-    model.train()
-    return {k: v / max(len(frames), 1) for k, v in sums.items()}
-
-
-def _set_seed(seed: int) -> None:
-    import random
-
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def _make_optimizer(model, lr: float):
-    return torch.optim.Adam(model.parameters(), lr=lr)
-
-
-def _tonemap_t(x: torch.Tensor) -> torch.Tensor:
-    """:func:`kpcn.metrics.tonemap` of a ``(C, H, W)`` tensor, for TensorBoard images."""
-    return torch.from_numpy(tonemap(x.detach().cpu().numpy())).float()
-
-
-# ----------------------------------------------------------------------------- the run folder
-
-#: what a run writes into its folder (``--overwrite`` removes these and nothing else)
-RUN_FILES = ("config.yaml", "metrics.jsonl", "model.safetensors")
-RUN_DIRS = ("checkpoints", "tb")
-_STEP_FILE = re.compile(r"step_(\d+)\.pt")
-
-
-def step_checkpoints(ckpt_dir: Path) -> list[tuple[int, Path]]:
-    """``[(N, checkpoints/step_<N>.pt), ...]``, newest first."""
-    if not ckpt_dir.is_dir():
-        return []
-    found = [(int(m.group(1)), p) for p in ckpt_dir.iterdir() if (m := _STEP_FILE.fullmatch(p.name)) and p.is_file()]
-    return sorted(found, reverse=True)
-
-
-def _check_run_folder(run: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse a new run in a folder that holds one, unless ``overwrite`` (nothing is written here)."""
-    if resume and overwrite:
-        raise RunFolderError(f"{run}: --resume continues a run and --overwrite replaces it; pass one of them")
-    if run.exists() and not run.is_dir():
-        raise RunFolderError(f"{run}: exists and is not a folder; choose another --name or --results-dir")
-    if resume or overwrite or not run.is_dir():
-        return
-    entries = sorted(p.name + ("/" if p.is_dir() else "") for p in run.iterdir())
-    if entries:
-        shown = ", ".join(entries[:4]) + (f" and {len(entries) - 4} more" if len(entries) > 4 else "")
-        raise RunFolderError(f"{run}: holds an earlier run ({shown}); pass --resume to continue it, --overwrite to "
-                             f"replace it, or choose another --name")
-
-
-def _clear_run(run: Path) -> None:
-    """Remove kpcn's files of an earlier run from ``run`` (``--overwrite``); other files are left alone."""
-    removed = []
-    for name in RUN_DIRS:
-        if (run / name).is_dir():
-            shutil.rmtree(run / name)
-            removed.append(name + "/")
-    for name in RUN_FILES:
-        for p in [run / name, *run.glob(f".{name}.*.tmp*")]:  # and atomic_write's leftovers of a crash
-            if p.is_file() or p.is_symlink():
-                p.unlink()
-                removed.append(p.name)
-    kept = sorted(p.name for p in run.iterdir()) if run.is_dir() else []
-    log.info("--overwrite: removed the earlier run's %s from %s%s", ", ".join(removed) or "nothing", run,
-             f" (kept {', '.join(kept)}: not written by kpcn)" if kept else "")
-
-
-def _truncate_metrics(path: Path, upto: int) -> None:
-    """Drop the validation lines of steps after ``upto`` (a resumed run writes them again)."""
-    if not path.is_file():
-        return
-    lines = path.read_text().splitlines()
-    keep = []
-    for ln in lines:
-        try:
-            if int(json.loads(ln)["step"]) <= upto:
-                keep.append(ln)
-        except (ValueError, KeyError, TypeError):  # a line cut short by a crash
-            pass
-    if keep != lines:
-        log.info("%s: dropped %d line(s) of steps after %d", path, len(lines) - len(keep), upto)
-        atomic_write(path, lambda tmp: Path(tmp).write_text("".join(x + "\n" for x in keep)))
-
-
-# ----------------------------------------------------------------------------- resuming
-
-
-def _without_path(exc: CheckpointError, path: Path) -> str:
-    text = str(exc)
-    return text[len(f"{path}: "):] if text.startswith(f"{path}: ") else text
-
-
-def find_resume_state(ckpt_dir: Path, trust_pickle: bool = False, map_location="cpu",
-                      verbose: bool = True) -> tuple[dict, Path | None]:
-    """``(state, path)`` of the checkpoint to resume from: ``latest.pt``, else the newest readable ``step_<N>.pt``.
-
-    ``({}, None)`` when there is no checkpoint at all; a :class:`CheckpointError`
-    naming every file (and why) when none is readable.
-    """
-    latest = ckpt_dir / "latest.pt"
-    candidates = ([latest] if latest.exists() else []) + [p for _, p in step_checkpoints(ckpt_dir)]
-    skipped: list[tuple[Path, str]] = []
-    for path in candidates:
-        try:
-            state = load_train_state(path, trust_pickle=trust_pickle, map_location=map_location)
-        except CheckpointError as exc:
-            skipped.append((path, _without_path(exc, path)))
-            if verbose:
-                log.warning("%s: cannot resume from it: %s", path, skipped[-1][1])
-            continue
-        if verbose and path != latest:
-            why = "is unreadable" if latest.exists() else "is missing"
-            log.warning("resuming from %s (step %s): %s %s", path, state.get("step"), latest.name, why)
-        return state, path
-    if skipped:
-        listed = "; ".join(f"{p.name}: {why}" for p, why in skipped)
-        raise CheckpointError(f"{ckpt_dir}: no checkpoint there can be resumed from ({listed}); start the run again "
-                              f"with --overwrite, or under another --name")
-    return {}, None
-
-
-def _model_differences(saved_name, saved_hparams: Mapping, model) -> list[str]:
-    before = to_dict({**dict(saved_hparams), "name": saved_name})
-    now = to_dict(model.hparams())
-    missing = object()
-    out = []
-    for k in sorted(set(before) | set(now), key=lambda k: (k != "name", k)):
-        a, b = before.get(k, missing), now.get(k, missing)
-        if a != b:
-            out.append(f"model.{k}: {'(absent)' if a is missing else repr(a)} in the checkpoint, "
-                       f"{'(absent)' if b is missing else repr(b)} now")
-    return out
-
-
-def _flat(d: Any, prefix: str = "") -> dict:
-    if not isinstance(d, Mapping):
-        return {prefix: d}
-    out = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, Mapping) else {f"{prefix}{k}": v})
-    return out
-
-
-def _check_resumable(cfg: RunConfig, model, state: dict, source: Path, log_changes: bool) -> None:
-    """The checkpoint's model must be ``cfg``'s (its weights are loaded into ``model``); other changes are logged."""
-    name, hparams = state.get("model_name"), state.get("hparams")
-    if isinstance(name, str) and isinstance(hparams, Mapping):
-        diffs = _model_differences(name, hparams, model)
-        if diffs:
-            raise ConfigError(f"{source}: --resume needs the model the run was trained with: {'; '.join(diffs)}. "
-                              f"Resume with the run's own model section (its config.yaml), or start a new run "
-                              f"(another --name, or --overwrite to replace this one)")
-    try:
-        model.load_state_dict(state["model"])
-    except (RuntimeError, TypeError, AttributeError) as exc:
-        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        detail = next((ln for ln in lines if ln.startswith(("size mismatch", "Missing key", "Unexpected key"))),
-                      lines[0] if lines else type(exc).__name__)
-        raise CheckpointError(f"{source}: its weights do not fit the configured model {cfg.model}: "
-                              f"{detail[:300]}") from None
-    saved = state.get("config")
-    if log_changes and isinstance(saved, Mapping):
-        ignore = ("name", "results_dir")
-        before = {k: v for k, v in _flat({k: v for k, v in saved.items() if k not in ignore and k != "model"}).items()}
-        now = _flat({k: v for k, v in to_dict(cfg).items() if k not in ignore and k != "model"})
-        changes = [f"{k}: {before.get(k, '(absent)')!r} -> {now.get(k, '(absent)')!r}"
-                   for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k)]
-        if changes:
-            log.info("resuming %s with changed settings: %s", source, "; ".join(changes))
-
-
-def _restore_optimizer(optimizer, state: dict, source: Path) -> None:
-    try:
-        if state["optimizer"] is not None:
-            optimizer.load_state_dict(state["optimizer"])
-        set_rng_state(state["rng"])
-    except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as exc:
-        raise CheckpointError(f"{source}: its optimiser or RNG state cannot be restored "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-
-
-# ----------------------------------------------------------------------------- training run
+#: names that moved to the modules above and that train() does not use itself: still importable from here
+_MOVED = (Dist, _rank_of_world, _portable, _unwrap, _is_default_dataset, ensure_dataset,
+          RUN_FILES, RUN_DIRS, _STEP_FILE, _without_path, _model_differences, _flat)
 
 
 def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pickle: bool = False,

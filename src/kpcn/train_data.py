@@ -1,0 +1,72 @@
+"""The training data: the data set folder (rendered when missing) and its train/validation split."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from .data import read_manifest
+from .distributed import _agree, _rank_of_world
+from .train_config import RunConfig
+
+log = logging.getLogger("kpcn.train")  # the training log, whichever module of it speaks
+
+__all__ = ["ensure_dataset", "split_pairs"]
+
+
+def _is_default_dataset(status, d) -> bool:
+    """Whether the data set ``status`` describes is the built-in one ``data.render_*`` asks for (or part of it)."""
+    from .render import manifest as mf
+
+    want = mf.settings(d.render_scenes, d.render_spp, d.render_ref_spp, d.render_resolution, d.render_first_seed)
+    have = dict(status.settings)
+    if status.legacy and status.rendered < d.render_scenes:  # maybe an interrupted render of it
+        have["n_scenes"] = d.render_scenes
+    return not mf.differences(have, want)
+
+
+def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) -> Path:
+    """The training data folder ``data.root``.
+
+    A data set already there is used as it is (its own settings; :func:`kpcn.data.read_manifest`
+    checks it is complete). When there is none — or there is an interrupted render of
+    the built-in data set ``data.render_*`` describes — :func:`kpcn.render.ensure_dataset`
+    renders or finishes it (if ``data.render_if_missing``; else a :class:`~kpcn.render.DatasetError`
+    with the command that does). Under torchrun rank 0 renders while the others wait, and an
+    error on rank 0 stops every rank.
+    """
+    from .render import dataset_status
+    from .render import ensure_dataset as ensure_rendered
+
+    d = cfg.data
+    root = Path(d.root)
+
+    def work() -> None:
+        if not is_main:
+            return
+        status = dataset_status(root)
+        if status.manifest is not None and not _is_default_dataset(status, d):
+            log.info("training on the data set in %s", root)
+            return
+        ensure_rendered(root, d.render_scenes, d.render_spp, d.render_ref_spp, tuple(d.render_resolution),
+                        d.render_first_seed, render_if_missing=d.render_if_missing, progress=progress)
+
+    _agree(work)  # the other ranks wait here for rank 0
+    return root
+
+
+def split_pairs(cfg: RunConfig, progress: bool = True):
+    """``(train_pairs, val_pairs)``: the validation frames are ``data.val_root``'s or the last ``data.val_scenes`` scenes."""
+    from .render import DatasetError
+
+    root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
+    pairs = read_manifest(root, cfg.data.spp)
+    if cfg.data.val_root:
+        try:
+            val_pairs = read_manifest(cfg.data.val_root, cfg.data.spp)
+        except FileNotFoundError as exc:
+            raise DatasetError(f"data.val_root: {exc}") from None
+        return pairs, val_pairs
+    scenes = sorted({p.scene for p in pairs})
+    n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
+    val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
+    return [p for p in pairs if p.scene not in val_scenes], [p for p in pairs if p.scene in val_scenes]

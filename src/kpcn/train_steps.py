@@ -1,0 +1,99 @@
+"""One training step's parts: the model, the batch of each step, the two stages' losses, and validation."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, DistributedSampler
+
+from .data import FrameDataset, PatchDataset
+from .distributed import Dist
+from .losses import create_loss
+from .metrics import all_metrics, tonemap
+from .models import create_model
+from .train_config import RunConfig
+
+__all__ = ["build_model", "stage_of", "model_inputs", "compute_loss", "batches", "validate"]
+
+
+def build_model(cfg: RunConfig) -> torch.nn.Module:
+    """The model ``cfg.model`` names, built with its hyper-parameters."""
+    return create_model(**cfg.model)
+
+
+def _unwrap(model):
+    return model.module if hasattr(model, "module") else model
+
+
+def stage_of(step: int, cfg: RunConfig) -> int:
+    return 1 if step < cfg.train.stage1_steps else 2
+
+
+def model_inputs(model, batch: dict) -> dict:
+    """The entries of ``batch`` the model reads: its spec's branches and the albedo."""
+    return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
+
+
+def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -> torch.Tensor:
+    """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour."""
+    if stage == 1:
+        loss = create_loss(cfg.train.loss)
+        return sum(loss(out[b], batch[f"y_{b}"]) for b in branches)
+    loss = create_loss(cfg.train.stage2_loss or cfg.train.loss)
+    return loss(out["color"], batch["y_color"])
+
+
+def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
+    """Yield ``(step, batch)`` from ``start_step``; the batch of a step depends only on seed and step."""
+    per_rank = max(1, cfg.train.batch_size // d.world)
+    steps_per_epoch = max(1, len(ds) // (per_rank * d.world))
+    total = cfg.train.stage1_steps + cfg.train.stage2_steps
+    step = start_step
+    while step < total:
+        epoch, within = divmod(step, steps_per_epoch)
+        ds.resample(epoch)
+        sampler = DistributedSampler(ds, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.train.seed, drop_last=True)
+        sampler.set_epoch(epoch)
+        loader = DataLoader(ds, batch_size=per_rank, sampler=sampler, drop_last=True)
+        for i, batch in enumerate(loader):
+            if i < within:
+                continue
+            if step >= total or i >= steps_per_epoch:
+                break
+            yield step, batch
+            step += 1
+
+
+@torch.no_grad()
+def validate(model, frames: FrameDataset, device) -> dict[str, float]:
+    """Mean metrics of the full-frame reconstruction over the validation frames."""
+    model.eval()
+    sums: dict[str, float] = {}
+    for i in range(len(frames)):
+        f = frames[i]
+        inputs = {k: v[None].to(device) for k, v in model_inputs(model, f).items()}
+        out = _unwrap(model)(inputs)
+        pred = out["color"][0].permute(1, 2, 0).cpu().numpy()
+        ref = f["y_color"].permute(1, 2, 0).numpy()
+        for k, v in all_metrics(pred, ref).items():
+            sums[k] = sums.get(k, 0.0) + v
+        noisy = f["noisy_color"].permute(1, 2, 0).numpy()
+        sums["noisy_relmse"] = sums.get("noisy_relmse", 0.0) + all_metrics(noisy, ref)["relmse"]
+    model.train()
+    return {k: v / max(len(frames), 1) for k, v in sums.items()}
+
+
+def _set_seed(seed: int) -> None:
+    import random
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _make_optimizer(model, lr: float):
+    return torch.optim.Adam(model.parameters(), lr=lr)
+
+
+def _tonemap_t(x: torch.Tensor) -> torch.Tensor:
+    """:func:`kpcn.metrics.tonemap` of a ``(C, H, W)`` tensor, for TensorBoard images."""
+    return torch.from_numpy(tonemap(x.detach().cpu().numpy())).float()
