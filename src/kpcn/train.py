@@ -57,8 +57,7 @@ stops all of them instead of leaving some waiting.
 This module is the entry point (:func:`train`, :func:`main`); its parts live in
 :mod:`kpcn.distributed` (ranks, cross-rank agreement), :mod:`kpcn.runs` (the
 run folder, resuming), :mod:`kpcn.train_data` (the data set and its split) and
-:mod:`kpcn.train_steps` (batches, losses, validation). Their names stay
-importable from here.
+:mod:`kpcn.train_steps` (batches, losses, validation).
 """
 from __future__ import annotations
 
@@ -76,30 +75,23 @@ import torch.distributed as dist
 from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
 from .data import FrameDataset, PatchDataset
-from .distributed import Dist, _agree, _portable, _rank_of_world, setup_distributed
+from .distributed import _agree, setup_distributed
 from .runs import (
-    _STEP_FILE,
-    RUN_DIRS,
-    RUN_FILES,
     RunFolderError,
     _check_resumable,
     _check_run_folder,
     _clear_run,
-    _flat,
-    _model_differences,
     _restore_optimizer,
     _truncate_metrics,
-    _without_path,
     find_resume_state,
     step_checkpoints,
 )
 from .train_config import RunConfig
-from .train_data import _is_default_dataset, ensure_dataset, split_pairs
+from .train_data import split_pairs
 from .train_steps import (
     _make_optimizer,
     _set_seed,
     _tonemap_t,
-    _unwrap,
     batches,
     build_model,
     compute_loss,
@@ -111,11 +103,6 @@ from .train_steps import (
 log = logging.getLogger("kpcn.train")
 
 __all__ = ["train", "build_model", "main", "RunConfig", "RunFolderError"]
-
-#: names that moved to the modules above and that train() does not use itself: still importable from here
-_MOVED = (Dist, _rank_of_world, _portable, _unwrap, _is_default_dataset, ensure_dataset,
-          RUN_FILES, RUN_DIRS, _STEP_FILE, _without_path, _model_differences, _flat)
-
 
 def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pickle: bool = False,
           overwrite: bool = False) -> dict:
