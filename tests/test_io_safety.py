@@ -127,7 +127,7 @@ def test_a_failing_cleanup_never_fails_the_write(tmp_path, monkeypatch):
     def refuse(path, *a, **k):
         raise PermissionError(f"no: {path}")
 
-    monkeypatch.setattr(kio.os, "unlink", refuse)
+    monkeypatch.setattr(os, "unlink", refuse)  # the os module atomic_write uses
     atomic_write(tmp_path / "x.exr", lambda tmp: open(tmp, "wb").write(b"ok"))
     assert (tmp_path / "x.exr").read_bytes() == b"ok"
 

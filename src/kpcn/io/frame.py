@@ -1,0 +1,104 @@
+"""The in-memory render: :class:`Frame`, its layer names and EXR windows, and the I/O errors."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable
+
+import numpy as np
+
+#: Layers with three channels; everything else (depth) has one.
+RGB_LAYERS = ("color", "diffuse", "specular", "albedo", "normal")
+#: The layers a KPCN/DPCN model reads (variances are listed separately).
+BASE_LAYERS = ("color", "diffuse", "specular", "albedo", "normal", "depth")
+FEATURE_LAYERS = BASE_LAYERS + tuple(f"{n}Variance" for n in BASE_LAYERS)
+#: ``frame.meta`` keys of the EXR windows, each ``((xmin, ymin), (xmax, ymax))`` in pixels (inclusive)
+WINDOW_KEYS = ("dataWindow", "displayWindow")
+
+
+class ExrError(RuntimeError):
+    """A file could not be read or written as a kpcn EXR."""
+
+
+class MissingLayerError(ExrError, KeyError):
+    """Layers a consumer needs are absent; the message names them and what was found."""
+
+    def __init__(self, path, missing: Iterable[str], found: Iterable[str], note: str = ""):
+        self.missing = sorted(missing)
+        self.found = sorted(found)
+        msg = (
+            f"{path}: missing layer(s) {', '.join(self.missing)}; "
+            f"found: {', '.join(self.found) if self.found else 'none'}"
+        )
+        if note:
+            msg += f" ({note})"
+        super().__init__(msg)
+
+    def __str__(self) -> str:  # KeyError would otherwise quote the message
+        return self.args[0]
+
+
+@dataclass
+class Frame:
+    """One render: named ``(H, W, C)`` float32 layers and header metadata."""
+
+    layers: dict[str, np.ndarray]
+    meta: dict = field(default_factory=dict)
+    path: str | None = None
+    #: number of NaN/Inf values replaced per layer when the frame was read
+    nonfinite: dict[str, int] = field(default_factory=dict)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self.layers[name]
+        except KeyError:
+            raise MissingLayerError(self.path or "frame", [name], self.layers) from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.layers
+
+    def get(self, name: str, default=None):
+        return self.layers.get(name, default)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        h, w = next(iter(self.layers.values())).shape[:2]
+        return h, w
+
+    @property
+    def spp(self) -> int | None:
+        s = self.meta.get("spp")
+        return int(s) if s is not None else None
+
+    def require(self, names: Iterable[str]) -> None:
+        """Raise :class:`MissingLayerError` unless every layer in ``names`` is present."""
+        missing = [n for n in names if n not in self.layers]
+        if missing:
+            raise MissingLayerError(self.path or "frame", missing, self.layers)
+
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> "Frame":
+        """Rows ``y0:y1`` and columns ``x0:x1``; a ``dataWindow`` in the metadata moves with the crop."""
+        meta = dict(self.meta)
+        if "dataWindow" in meta and self.layers:
+            h, w = self.shape
+            ys, ye, _ = slice(y0, y1).indices(h)
+            xs, xe, _ = slice(x0, x1).indices(w)
+            (wx, wy), _ = _window(meta["dataWindow"], "dataWindow")
+            meta["dataWindow"] = ((wx + xs, wy + ys), (wx + max(xe, xs) - 1, wy + max(ye, ys) - 1))
+        return Frame({k: v[y0:y1, x0:x1] for k, v in self.layers.items()}, meta, self.path)
+
+
+
+def _window(value, key: str = "window") -> tuple[tuple[int, int], tuple[int, int]]:
+    """``((xmin, ymin), (xmax, ymax))`` from a box given as two pairs or four numbers."""
+    try:
+        a = np.asarray([np.asarray(v).ravel() for v in value] if len(value) == 2 else value).ravel()
+        if a.size != 4 or not np.all(np.isfinite(a.astype(np.float64))) or np.any(a != np.round(a)):
+            raise ValueError
+        x0, y0, x1, y1 = (int(v) for v in a)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{key}: expected ((xmin, ymin), (xmax, ymax)) in integer pixels, got {value!r}"
+        ) from None
+    if x1 < x0 - 1 or y1 < y0 - 1:
+        raise ValueError(f"{key}: max corner {(x1, y1)} is left of / above min corner {(x0, y0)}")
+    return (x0, y0), (x1, y1)
