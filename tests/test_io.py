@@ -112,3 +112,14 @@ def test_interrupted_write_keeps_previous_file(render, tmp_path, monkeypatch):
         write_exr(path, frame.layers, frame.meta)
     assert path.read_bytes() == before
     assert os.listdir(tmp_path) == ["out.exr"]
+
+
+def test_unknown_three_channel_layers_are_read_whole(tmp_path):
+    """A light group or AOV written by another tool (``key.diffuse.R/G/B``) keeps its three channels."""
+    rng = np.random.default_rng(0)
+    layers = {"color": rng.random((5, 4, 3), dtype=np.float32), "key.diffuse": rng.random((5, 4, 3), dtype=np.float32),
+              "fog": rng.random((5, 4, 3), dtype=np.float32), "depth": rng.random((5, 4, 1), dtype=np.float32)}
+    write_exr(tmp_path / "a.exr", layers)
+    fr = read_exr(tmp_path / "a.exr")
+    for name, arr in layers.items():
+        np.testing.assert_array_equal(fr[name], arr)

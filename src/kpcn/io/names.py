@@ -55,16 +55,16 @@ def _pick_channels(layer: str, suffixes: Mapping[str, str]) -> list[str] | None:
                 return [suffixes[s] for s in order]
         if not layer.endswith("Variance"):
             return None
+    if base != "depth":  # another tool's three-channel layer (a light group, an AOV): keep it whole
+        for order in _CHANNEL_ORDER[3]:
+            if all(s in suffixes for s in order):
+                return [suffixes[s] for s in order]
     # one-channel layer (depth, or a variance stored as one channel)
     for s in _SINGLE:
         if s in suffixes:
             return [suffixes[s]]
     if len(suffixes) == 1:
         return list(suffixes.values())
-    # a three-channel layer we do not know: keep RGB if present
-    for order in _CHANNEL_ORDER[3]:
-        if all(s in suffixes for s in order):
-            return [suffixes[s] for s in order]
     return None
 
 
