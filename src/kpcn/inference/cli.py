@@ -111,8 +111,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"kpcn-denoise: cannot load the model: {exc}", file=sys.stderr)
         return 2
     dev = next(net.parameters()).device
+    how = " (files without its layers get the shipped model for the layers they have)" if args.model is None else ""
     print(f"model: {describe(net)}, inputs {net.input_spec.name}, receptive radius {net.receptive_radius}, "
-          f"tile {args.tile}, device {dev}", flush=True)
+          f"tile {args.tile}, device {dev}{how}", flush=True)
 
     failures: list[tuple[str, str]] = []
     for inp, dst in jobs:
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             # denoise_result repeats the output checks (the same functions), in case a file changed meanwhile
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                res = denoise_result(inp, net, dst, tile=args.tile, device=args.device, half=args.half,
+                res = denoise_result(inp, None if args.model is None else net, dst, tile=args.tile, device=args.device, half=args.half,
                                      skip=not args.no_skip, layers=args.layers, aov_branch=args.aov_branch)
             for wmsg in caught:
                 print(f"warning: {wmsg.message}", file=sys.stderr)
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"FAILED {inp}: {exc}", file=sys.stderr, flush=True)
             failures.append((inp, str(exc)))
             continue
-        print(f"{inp} -> {dst}: {res.stats.seconds:.2f} s ({res.stats.summary()})", flush=True)
+        print(f"{inp} -> {dst}: {res.model_name}, {res.stats.seconds:.2f} s ({res.stats.summary()})", flush=True)
     if failures:
         print(f"\n{len(failures)} of {len(args.inputs)} file(s) failed:", file=sys.stderr)
         for inp, msg in failures:

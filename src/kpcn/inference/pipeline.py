@@ -42,7 +42,7 @@ from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
 from .tiling import plan_tiles, tile_size
-from .weights import describe, load_model, resolve_device
+from .weights import choose_default, describe, load_model, resolve_device
 
 __all__ = ["denoise", "denoise_result", "DenoiseResult", "DenoiseStats", "PASSTHROUGH_REL_STD", "peak_rss_mb"]
 
@@ -240,9 +240,17 @@ def denoise_result(
         if source is not None and os.path.exists(source):  # a missing input is the reader's error
             check_not_input(out_path, source)
     dev = resolve_device(device)
+    read_s = 0.0
+    if model is None:  # the shipped model for the layers this file has
+        frame, read_s = _as_frame(exr_path_or_frame, ())
+        model, note = choose_default(frame.layers)
+        if note:
+            warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=2)
+        exr_path_or_frame = frame
     net = load_model(model, dev, trust_pickle=trust_pickle)
     spec = net.input_spec
-    frame, read_s = _as_frame(exr_path_or_frame, spec.layers)
+    frame, t_read = _as_frame(exr_path_or_frame, spec.layers)
+    read_s += t_read
     h, w = _validate(frame, spec.layers)
     plans = plan_aovs(frame, list(layers), spec, aov_branch) if layers else []
     if plans and not net.zero_preserving:

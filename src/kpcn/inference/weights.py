@@ -2,7 +2,10 @@
 
 ``model`` may be
 
-* ``None`` — the default model's shipped weights (:data:`DEFAULT_MODEL`);
+* ``None`` — the shipped default for the layers the file has
+  (:func:`choose_default`): :data:`DEFAULT_MODEL` for kpcn's full split with
+  variances, else a shipped model for the split without variances, else one
+  for colour + albedo + normal (and the choice is said);
 * a registered model name, ``"kpcn"``, or ``"name:tag"`` (``"kpcn:small"``) —
   the weights registered beside that model (:func:`kpcn.models.register_weights`);
 * a path — a ``.safetensors`` weights file, or a training state / older
@@ -25,10 +28,15 @@ from torch import nn
 from ..checkpoint import load_model_file
 from ..models import DenoiserModel, is_model, list_models, list_weights, weights_entry
 
-__all__ = ["DEFAULT_MODEL", "DefaultWeightsMissing", "load_model", "resolve_weights", "resolve_device", "describe"]
+__all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_default", "load_model",
+           "resolve_weights", "resolve_device", "describe"]
 
 #: the model ``denoise(path)`` uses when none is given (its default shipped weights)
 DEFAULT_MODEL = "kpcn"
+
+#: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
+DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",
+                   "color_albedo_normal": "kpcn:can_small"}
 
 HOW_TO_GET_WEIGHTS = (
     "train a model with `python -m kpcn.train --config configs/small.yaml` and pass its weights "
@@ -97,6 +105,27 @@ def load_model(model=None, device: str | torch.device = "auto", trust_pickle: bo
     path = resolve_weights(model)
     st = path.stat()
     return _load_cached(str(path.resolve()), st.st_mtime_ns, st.st_size, str(dev), bool(trust_pickle))
+
+
+def choose_default(layers) -> tuple[str, str | None]:
+    """The shipped model for a file with ``layers``, and a note when it is not :data:`DEFAULT_MODEL`.
+
+    The first spec of :data:`DEFAULT_BY_SPEC` whose layers are all present and
+    whose weights ship; the default model when none fits (its reader then names
+    the missing layers).
+    """
+    from ..inputs import get_input_spec
+
+    have = set(layers)
+    for spec_name, ref in DEFAULT_BY_SPEC.items():
+        name, _, tag = ref.partition(":")
+        if set(get_input_spec(spec_name).layers) <= have and (tag or "") in ("", *list_weights(name)):
+            if ref == DEFAULT_MODEL:
+                return ref, None
+            missing = sorted(set(get_input_spec("kpcn_split").layers) - have)
+            return ref, (f"no {', '.join(missing)} in the file: denoising with {ref} "
+                         f"({get_input_spec(spec_name).description})")
+    return DEFAULT_MODEL, None
 
 
 def describe(model: nn.Module) -> str:
