@@ -122,9 +122,8 @@ def choose_default(layers) -> tuple[str, str | None]:
         if set(get_input_spec(spec_name).layers) <= have and (tag or "") in ("", *list_weights(name)):
             if ref == DEFAULT_MODEL:
                 return ref, None
-            missing = sorted(set(get_input_spec("kpcn_split").layers) - have)
-            return ref, (f"no {', '.join(missing)} in the file: denoising with {ref} "
-                         f"({get_input_spec(spec_name).description})")
+            lacking = "per-pixel variances" if spec_name == "split_novar" else "diffuse/specular split"
+            return ref, f"the file has no {lacking}: denoising with {ref} ({get_input_spec(spec_name).description})"
     return DEFAULT_MODEL, None
 
 
