@@ -13,6 +13,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from .cycles import convert_cycles
 from .frame import WINDOW_KEYS, ExrError, Frame, MissingLayerError, _window
 from .names import _canonical_layer, _group_channels, _pick_channels
 from .parts import _Part, _read_parts, _storage
@@ -116,6 +117,11 @@ def read_exr(path: str | os.PathLike, require: Iterable[str] = (), *, warn: bool
             the found layers (and, for a multi-part file, its parts).
         warn: emit a warning that counts replaced NaN/Inf values.
 
+    A Blender Cycles render (``<view layer>.<pass>`` layers, no ``diffuse`` /
+    ``specular``) gets the contract layers derived from its passes, and
+    ``frame.meta["source_layout"] == "cycles"`` (see :mod:`kpcn.io.cycles`); a
+    missing-layer error then names the Cycles passes to enable.
+
     Returns:
         A frame whose layers are float32 ``(H, W, C)`` arrays. NaN and -Inf are
         replaced by 0 and +Inf by the layer's largest finite value (0 if none);
@@ -163,11 +169,15 @@ def read_exr(path: str | os.PathLike, require: Iterable[str] = (), *, warn: bool
             stacklevel=2,
         )
 
+    # a Blender Cycles render: the contract layers from its passes (kpcn.io.cycles)
+    cycles = convert_cycles(layers, channels, meta, parts[0].header if parts else None, path=path)
     frame = Frame(layers, meta, path)
     missing = [n for n in require if n not in layers]
     if missing:
         note = ""
-        if len(parts) > 1 or lost:
+        if cycles is not None:
+            note = cycles.explain(missing)
+        elif len(parts) > 1 or lost:
             note = f"multi-part file; parts {_part_summary(parts)}"
             if lost:
                 note += f"; unreadable part(s) {'; '.join(lost)}"

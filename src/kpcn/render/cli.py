@@ -5,6 +5,12 @@ Command line::
     python -m kpcn.render frame scene.xml --spp 8 --out noisy.exr --ref-spp 1024 --ref-out ref.exr
     python -m kpcn.render frame scene.xml --param albedo=0.3 --param res=64 --spp 8 --out noisy.exr
     python -m kpcn.render dataset --out data/train --scenes 64 --spp 2 4 8 16 --ref-spp 1024
+    python -m kpcn.render cycles scene.blend --spp 16 --out frame.exr [--seed N] [--resolution W H]
+    python -m kpcn.render cycles --generated --spp 16 --out frame.exr
+
+``cycles`` renders with Blender Cycles (optional: ``pip install 'kpcn[blender]'``)
+into a multilayer EXR of Cycles passes, which kpcn reads (see
+:mod:`kpcn.render.cycles` and :mod:`kpcn.io.cycles`).
 
 Every option is checked, and the scene loaded, before anything is rendered;
 ``frame`` renders the input and the reference before it writes either, so a
@@ -65,6 +71,17 @@ def _parse_args(argv=None):
     d.add_argument("--ref-spp", type=int, help="reference spp (default 1024)")
     d.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default 128 128")
     d.add_argument("--debug", **debug)
+    c = sub.add_parser("cycles", help="render a Blender .blend (or --generated, a small built-in scene) with Cycles "
+                                      "into a multilayer EXR of the passes kpcn reads (needs kpcn[blender])")
+    c.add_argument("blend", nargs="?", help="the .blend file (its active scene and camera)")
+    c.add_argument("--generated", action="store_true",
+                   help="render kpcn's generated scene (diffuse plane, glossy and glass spheres) instead")
+    c.add_argument("--spp", type=int, default=16, help="samples per pixel (>= 1)")
+    c.add_argument("--seed", type=int, default=0, help="scene.cycles.seed (>= 0)")
+    c.add_argument("--out", required=True, help="multilayer EXR to write")
+    c.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
+                   help="image size (default: the .blend's; 128 128 for --generated)")
+    c.add_argument("--debug", **debug)
     return p.parse_args(argv)
 
 
@@ -135,11 +152,36 @@ def _dataset(args) -> None:
     print(f"wrote {out / 'manifest.json'}")
 
 
+def _cycles(args) -> None:
+    from .cycles import render_cycles
+
+    if args.generated == (args.blend is not None):
+        raise UsageError("cycles: give either a .blend file or --generated" if args.generated
+                         else "cycles: give a .blend file to render, or --generated for kpcn's generated scene")
+    if args.spp < 1:
+        raise UsageError(f"--spp: must be >= 1, got {args.spp}")
+    if not 0 <= args.seed <= 2**31 - 1:
+        raise UsageError(f"--seed: must be in [0, 2147483647] (scene.cycles.seed), got {args.seed}")
+    if args.resolution is not None and min(args.resolution) < 1:
+        raise UsageError(f"--resolution: width and height must be >= 1, got {args.resolution[0]} {args.resolution[1]}")
+    out = Path(args.out)
+    if out.is_dir():
+        raise UsageError(f"--out: {out} is a folder; give the EXR file to write")
+    if args.blend is not None and out.resolve() == Path(args.blend).resolve():
+        raise UsageError(f"--out: {out} is the .blend file itself")
+    r = render_cycles(args.blend, out, args.spp, args.seed, tuple(args.resolution) if args.resolution else None)
+    print(f"{r.path}: {r.resolution[0]}x{r.resolution[1]}, {r.spp} spp, {r.seconds:.2f} s "
+          f"(Blender Cycles, {len(r.passes)} passes)")
+
+
+_COMMANDS = {"frame": _frame, "dataset": _dataset, "cycles": _cycles}
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     args = _parse_args(argv)
     try:
-        _frame(args) if args.cmd == "frame" else _dataset(args)
+        _COMMANDS[args.cmd](args)
     except (UsageError, SceneError, ConfigError, DatasetError, RendererUnavailable) as exc:
         if args.debug:
             raise

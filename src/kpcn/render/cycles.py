@@ -1,0 +1,415 @@
+"""Rendering with Blender Cycles into multilayer EXRs that kpcn reads (:func:`render_cycles`).
+
+Python API::
+
+    from kpcn.render.cycles import render_cycles
+    render_cycles("scene.blend", "frame.exr", spp=16, seed=1)                # the .blend's scene and camera
+    render_cycles(None, "frame.exr", spp=16, seed=1, resolution=(64, 64))    # a small generated scene
+
+Command line::
+
+    python -m kpcn.render cycles scene.blend --spp 16 --out frame.exr [--seed N] [--resolution W H]
+    python -m kpcn.render cycles --generated --spp 16 --out frame.exr
+
+Blender's Python module ``bpy`` is an optional dependency (``pip install
+'kpcn[blender]'``: bpy 5.0.1, CPython 3.11, Linux x86-64); kpcn imports
+without it, and a missing ``bpy`` is a :class:`BlenderUnavailable` error that
+says how to install it.
+
+Each render runs in a child Python process that imports ``bpy``: Blender's
+state is process-wide (one open file, one set of add-ons), and a render that
+crashes Blender ends the child, not the caller. The child
+
+* opens the ``.blend`` (or, with ``None``, builds a scene: a textured diffuse
+  plane, a glossy metal sphere, a glass sphere, an area light, a uniform world
+  light and a camera);
+* renders with Cycles on the CPU: ``spp`` samples exactly (adaptive sampling
+  off, view-layer sample overrides ignored, no time limit), no denoiser, fixed
+  ``scene.cycles.seed``, a 1-pixel box pixel filter (wider filters correlate
+  neighbouring pixels), no sample clamping, compositing and sequencer off (the
+  file holds the render passes, not a composite);
+* switches on, on every rendered view layer, the passes :mod:`kpcn.io.cycles`
+  reads: Combined; Diffuse, Glossy and Transmission Direct/Indirect/Color;
+  Volume Direct/Indirect; Emission; Environment; Normal; Z; Denoising Data;
+* writes them all as one multilayer EXR (``media_type = 'MULTI_LAYER_IMAGE'``,
+  ``file_format = 'OPEN_EXR_MULTILAYER'``, float32, ZIP) with
+  ``bpy.ops.render.render(write_still=True)`` into a private temporary folder,
+  adds kpcn's header attributes (``spp``, ``seed``, ``scene``,
+  ``renderTimeSeconds``) to the first part, and writes the result to ``out``
+  atomically (:func:`kpcn.io.atomic_write`).
+
+The settings it changed in a ``.blend`` are logged (logger ``kpcn.render``).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from .scene import RendererUnavailable, SceneError
+
+__all__ = ["BLENDER_HELP", "BlenderUnavailable", "CyclesRender", "blender_available", "render_cycles",
+           "GENERATED_RESOLUTION", "PASSES"]
+
+log = logging.getLogger("kpcn.render")
+
+BLENDER_HELP = "pip install 'kpcn[blender]' (Blender's Python module bpy 5.0.1, for CPython 3.11)"
+
+#: size of the generated scene when no resolution is given
+GENERATED_RESOLUTION = (128, 128)
+
+#: view-layer properties switched on for every rendered view layer (``cycles.`` ones live in ``view_layer.cycles``)
+PASSES = (
+    "use_pass_combined", "use_pass_z", "use_pass_normal",
+    "use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_diffuse_color",
+    "use_pass_glossy_direct", "use_pass_glossy_indirect", "use_pass_glossy_color",
+    "use_pass_transmission_direct", "use_pass_transmission_indirect", "use_pass_transmission_color",
+    "use_pass_emit", "use_pass_environment",
+    "cycles.use_pass_volume_direct", "cycles.use_pass_volume_indirect", "cycles.denoising_store_passes",
+)
+
+_RESULT_TAG = "KPCN_CYCLES_RESULT "
+_ERROR_TAG = "KPCN_CYCLES_ERROR "
+
+
+class BlenderUnavailable(RendererUnavailable):
+    """Blender's Python module (``bpy``) cannot be imported here."""
+
+
+@dataclass(frozen=True)
+class CyclesRender:
+    """What :func:`render_cycles` wrote."""
+
+    path: Path
+    spp: int
+    seed: int
+    resolution: tuple[int, int]  # (width, height) in pixels
+    seconds: float  # Cycles' render time (not counting Blender's start)
+    passes: tuple[str, ...]  # the layers of the file (``<view layer>.<pass>``)
+    notes: tuple[str, ...]  # settings of the .blend that were changed
+
+
+def blender_available() -> bool:
+    """Whether ``bpy`` is installed (it is imported only by the render's child process)."""
+    try:
+        return importlib.util.find_spec("bpy") is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def _check(blend, out_path, spp, seed, resolution) -> tuple[Path | None, Path, tuple[int, int] | None]:
+    if isinstance(spp, bool) or not isinstance(spp, int) or not 1 <= spp <= 16_777_216:
+        raise ValueError(f"render_cycles: spp must be an integer in [1, 16777216], got {spp!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= 2**31 - 1:
+        raise ValueError(f"render_cycles: seed must be an integer in [0, 2147483647] (scene.cycles.seed), got {seed!r}")
+    if resolution is not None:
+        try:
+            w, h = (int(v) for v in resolution)
+        except (TypeError, ValueError):
+            raise ValueError(f"render_cycles: resolution must be (width, height), got {resolution!r}") from None
+        if (w, h) != tuple(resolution) or min(w, h) < 1:
+            raise ValueError(f"render_cycles: resolution must be two integers >= 1, got {resolution!r}")
+        resolution = (w, h)
+    out = Path(out_path)
+    if out.is_dir():
+        raise ValueError(f"render_cycles: {out} is a folder; give the EXR file to write")
+    if blend is None:
+        return None, out, resolution
+    blend = Path(blend)
+    if not blend.is_file():
+        raise SceneError(f"{blend}: no such .blend file")
+    if out.resolve() == blend.resolve():
+        raise ValueError(f"render_cycles: the output {out} is the .blend file itself")
+    return blend, out, resolution
+
+
+def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolution=None, *,
+                  timeout: float | None = None) -> CyclesRender:
+    """Render a ``.blend`` (or, with ``None``, a generated scene) with Cycles into a multilayer EXR.
+
+    Args:
+        blend_path_or_none: the ``.blend`` file (its active scene and camera), or
+            ``None`` for kpcn's generated scene (:data:`GENERATED_RESOLUTION` unless
+            ``resolution`` is given).
+        out_path: the EXR to write (atomically; missing folders are created).
+        spp: samples per pixel (exactly; adaptive sampling is switched off).
+        seed: ``scene.cycles.seed``.
+        resolution: ``(width, height)``; ``None`` keeps the ``.blend``'s size.
+        timeout: seconds after which the render is stopped (``None``: no limit).
+
+    Returns:
+        A :class:`CyclesRender` (path, size, render seconds, the file's layers,
+        the ``.blend`` settings that were changed).
+
+    Raises:
+        BlenderUnavailable: ``bpy`` is not installed (``pip install 'kpcn[blender]'``).
+        SceneError: the ``.blend`` cannot be opened or rendered (no camera, ...).
+        ValueError: a bad argument.
+        RuntimeError: Blender failed otherwise (the message ends with its last output).
+    """
+    blend, out, resolution = _check(blend_path_or_none, out_path, spp, seed, resolution)
+    if not blender_available():
+        raise BlenderUnavailable(f"Blender's Python module bpy is not installed: {BLENDER_HELP}")
+    job = {"blend": str(blend.resolve()) if blend else None, "scene": str(blend) if blend else "cycles:generated",
+           "out": str(out.resolve()), "spp": spp, "seed": seed, "resolution": list(resolution) if resolution else None}
+    env = dict(os.environ)
+    src = str(Path(__file__).resolve().parents[2])  # the folder that holds the kpcn package
+    env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    code = "import sys; from kpcn.render.cycles import _child; sys.exit(_child(sys.argv[1]))"
+    try:
+        proc = subprocess.run([sys.executable, "-c", code, json.dumps(job)], env=env, capture_output=True,
+                              text=True, errors="replace", timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"Blender Cycles render of {job['scene']} stopped after {timeout} s") from None
+    lines = (proc.stdout or "").splitlines() + (proc.stderr or "").splitlines()
+    result = next((ln[len(_RESULT_TAG):] for ln in lines if ln.startswith(_RESULT_TAG)), None)
+    if proc.returncode == 0 and result is not None:
+        info = json.loads(result)
+        for note in info["notes"]:
+            log.info("%s: %s", job["scene"], note)
+        return CyclesRender(Path(out_path), spp, seed, tuple(info["resolution"]), float(info["seconds"]),
+                            tuple(info["passes"]), tuple(info["notes"]))
+    error = next((ln[len(_ERROR_TAG):] for ln in lines if ln.startswith(_ERROR_TAG)), None)
+    if error is not None:
+        kind, _, msg = error.partition(" ")
+        if kind == "scene":
+            raise SceneError(msg)
+        if kind == "bpy":
+            raise BlenderUnavailable(f"Blender's Python module bpy cannot be imported ({msg}): {BLENDER_HELP}")
+        raise RuntimeError(msg)
+    tail = " | ".join(ln.strip() for ln in lines[-5:] if ln.strip())
+    raise RuntimeError(f"Blender Cycles render of {job['scene']} failed (exit status {proc.returncode}): {tail}")
+
+
+# ----------------------------------------------------------------------------- the child process (imports bpy)
+
+
+class _SceneProblem(Exception):
+    pass
+
+
+def _child(job_json: str) -> int:
+    """Entry point of the render's child process: render ``job``, print one result or error line."""
+    job = json.loads(job_json)
+    try:
+        import bpy
+    except Exception as exc:  # ImportError, or Blender's libraries failing to load
+        print(_ERROR_TAG + "bpy " + " ".join(str(exc).split()), flush=True)
+        return 3
+    try:
+        info = _render(bpy, job)
+    except _SceneProblem as exc:
+        print(_ERROR_TAG + "scene " + " ".join(str(exc).split()), flush=True)
+        return 2
+    except Exception as exc:
+        print(_ERROR_TAG + "other " + f"Blender Cycles render of {job['scene']} failed: {type(exc).__name__}: "
+              + " ".join(str(exc).split()), flush=True)
+        return 1
+    print(_RESULT_TAG + json.dumps(info), flush=True)
+    return 0
+
+
+def _set(obj, attr: str, value, notes: list[str] | None, label: str) -> None:
+    """``obj.attr = value``, with a note when a ``.blend`` had another value."""
+    old = getattr(obj, attr)
+    if isinstance(old, float) and isinstance(value, (int, float)):
+        same = math.isclose(old, value, rel_tol=1e-6, abs_tol=1e-9)
+    else:
+        same = old == value
+    if not same:
+        setattr(obj, attr, value)
+        if notes is not None:
+            notes.append(f"{label}: {old!r} -> {value!r}")
+
+
+def _render(bpy, job: dict) -> dict:
+    import tempfile
+
+    notes: list[str] | None = []
+    if job["blend"]:
+        try:
+            bpy.ops.wm.open_mainfile(filepath=job["blend"], load_ui=False)
+        except RuntimeError as exc:
+            raise _SceneProblem(f"{job['scene']}: Blender cannot open it: {exc}") from None
+        scene = bpy.context.scene
+        if scene is None:
+            raise _SceneProblem(f"{job['scene']}: the file has no scene")
+        if scene.camera is None:
+            raise _SceneProblem(f"{job['scene']}: scene {scene.name!r} has no active camera "
+                                "(set one in Scene Properties → Camera)")
+        if not any(vl.use for vl in scene.view_layers):
+            raise _SceneProblem(f"{job['scene']}: scene {scene.name!r} renders no view layer "
+                                "(every view layer has 'Use for Rendering' off)")
+    else:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        scene = bpy.context.scene
+        _build_scene(bpy, scene)
+        notes = None  # nothing to report on kpcn's own scene
+    _configure(scene, job, notes)
+    view = [vl for vl in scene.view_layers if vl.use]
+    for vl in view:
+        for prop in PASSES:
+            owner, attr = (vl.cycles, prop[len("cycles."):]) if prop.startswith("cycles.") else (vl, prop)
+            setattr(owner, attr, True)
+
+    with tempfile.TemporaryDirectory(prefix="kpcn-cycles-") as tmp:
+        raw = os.path.join(tmp, "render.exr")  # no '#' or '//' for Blender to expand
+        scene.render.filepath = raw
+        t0 = time.perf_counter()
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+        seconds = time.perf_counter() - t0
+        if not os.path.exists(raw):
+            raise RuntimeError("Blender rendered but wrote no file")
+        passes, size = _finish(raw, job, seconds)
+    return {"seconds": seconds, "passes": passes, "resolution": size, "notes": notes or []}
+
+
+def _configure(scene, job: dict, notes: list[str] | None) -> None:
+    r = scene.render
+    _set(r, "engine", "CYCLES", notes, "render engine")
+    c = scene.cycles
+    _set(c, "device", "CPU", notes, "cycles.device")
+    _set(c, "samples", int(job["spp"]), notes, "cycles.samples")
+    _set(c, "use_adaptive_sampling", False, notes, "cycles.use_adaptive_sampling")
+    _set(c, "use_layer_samples", "IGNORE", notes, "cycles.use_layer_samples")
+    _set(c, "time_limit", 0.0, notes, "cycles.time_limit")
+    if hasattr(c, "use_sample_subset"):
+        _set(c, "use_sample_subset", False, notes, "cycles.use_sample_subset")
+    _set(c, "use_denoising", False, notes, "cycles.use_denoising")
+    _set(c, "seed", int(job["seed"]), None, "cycles.seed")
+    _set(c, "use_animated_seed", False, notes, "cycles.use_animated_seed")
+    _set(c, "pixel_filter_type", "BOX", notes, "cycles.pixel_filter_type")
+    _set(c, "filter_width", 1.0, notes, "cycles.filter_width")
+    _set(c, "sample_clamp_direct", 0.0, notes, "cycles.sample_clamp_direct")
+    _set(c, "sample_clamp_indirect", 0.0, notes, "cycles.sample_clamp_indirect")
+    _set(r, "use_compositing", False, notes, "render.use_compositing")
+    _set(r, "use_sequencer", False, notes, "render.use_sequencer")
+    _set(r, "use_border", False, notes, "render.use_border")
+    if job["resolution"]:
+        w, h = job["resolution"]
+        _set(r, "resolution_x", int(w), None, "")
+        _set(r, "resolution_y", int(h), None, "")
+        _set(r, "resolution_percentage", 100, None, "")
+    r.use_file_extension = False
+    s = r.image_settings
+    s.media_type = "MULTI_LAYER_IMAGE"  # Blender 5: before file_format, which it restricts
+    s.file_format = "OPEN_EXR_MULTILAYER"
+    s.color_depth = "32"
+    s.exr_codec = "ZIP"
+
+
+def _finish(raw: str, job: dict, seconds: float) -> tuple[list[str], list[int]]:
+    """Copy Blender's file to ``job["out"]`` atomically with kpcn's header attributes; its layers and size."""
+    import OpenEXR
+
+    from ..io import atomic_write
+
+    with OpenEXR.File(raw, separate_channels=True) as f:
+        parts = []
+        for i, p in enumerate(f.parts):
+            header = dict(p.header)
+            if i == 0:
+                header.update(spp=int(job["spp"]), seed=int(job["seed"]), scene=str(job["scene"]),
+                              renderTimeSeconds=float(seconds))
+            parts.append(OpenEXR.Part(header, dict(p.channels), name=p.name()))
+        layers = sorted({n.rsplit(".", 1)[0] for p in f.parts for n in p.channels})
+        size = [int(f.parts[0].width()), int(f.parts[0].height())]
+        atomic_write(job["out"], lambda tmp: OpenEXR.File(parts).write(tmp))
+    return layers, size
+
+
+def _build_scene(bpy, scene) -> None:
+    """kpcn's generated scene: textured diffuse plane, glossy and glass spheres, an area light, a world light."""
+    data = bpy.data
+
+    def material(name: str, make):
+        m = data.materials.new(name)
+        nt = m.node_tree
+        nt.nodes.clear()
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        nt.links.new(make(nt).outputs[0], out.inputs["Surface"])
+        return m
+
+    def diffuse(nt):
+        bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+        checker = nt.nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 4.0
+        checker.inputs["Color1"].default_value = (0.8, 0.8, 0.8, 1.0)
+        checker.inputs["Color2"].default_value = (0.2, 0.3, 0.6, 1.0)
+        nt.links.new(checker.outputs["Color"], bsdf.inputs["Color"])
+        return bsdf
+
+    def glossy(nt):
+        bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (0.9, 0.6, 0.3, 1.0)
+        bsdf.inputs["Metallic"].default_value = 1.0
+        bsdf.inputs["Roughness"].default_value = 0.25
+        return bsdf
+
+    def glass(nt):
+        bsdf = nt.nodes.new("ShaderNodeBsdfGlass")
+        bsdf.inputs["IOR"].default_value = 1.45
+        bsdf.inputs["Roughness"].default_value = 0.0
+        return bsdf
+
+    def add(obj, mat=None):
+        scene.collection.objects.link(obj)
+        if mat is not None:
+            obj.data.materials.append(mat)
+        return obj
+
+    plane = data.meshes.new("plane")
+    s = 6.0
+    plane.from_pydata([(-s, -s, 0), (s, -s, 0), (s, s, 0), (-s, s, 0)], [], [(0, 1, 2, 3)])
+    plane.uv_layers.new(name="UVMap")
+    add(data.objects.new("plane", plane), material("diffuse", diffuse))
+    for name, loc, radius, mat in (("glossy", (-1.1, 0.3, 1.0), 1.0, material("glossy", glossy)),
+                                   ("glass", (1.2, -0.4, 0.8), 0.8, material("glass", glass))):
+        add(data.objects.new(name, _sphere(data, name, radius)), mat).location = loc
+    light = data.lights.new("area", type="AREA")
+    light.energy = 400.0
+    light.size = 1.5
+    add(data.objects.new("area", light)).location = (1.5, -1.0, 4.0)
+    world = data.worlds.new("world")
+    scene.world = world
+    bg = world.node_tree.nodes["Background"]
+    bg.inputs["Color"].default_value = (0.3, 0.4, 0.6, 1.0)
+    bg.inputs["Strength"].default_value = 0.8
+    cam = data.cameras.new("camera")
+    cam.lens = 35.0
+    camera = add(data.objects.new("camera", cam))
+    camera.location = (0.0, -7.0, 3.2)
+    camera.rotation_euler = (math.radians(72.0), 0.0, 0.0)
+    scene.camera = camera
+    scene.render.resolution_x, scene.render.resolution_y = GENERATED_RESOLUTION
+    scene.render.resolution_percentage = 100
+
+
+def _sphere(data, name: str, radius: float, segments: int = 48, rings: int = 24):
+    """A smooth-shaded UV sphere mesh (built from vertices: no operator, no context needed)."""
+    verts = [(0.0, 0.0, radius)]
+    for i in range(1, rings):
+        theta = math.pi * i / rings
+        for j in range(segments):
+            phi = 2 * math.pi * j / segments
+            verts.append((radius * math.sin(theta) * math.cos(phi), radius * math.sin(theta) * math.sin(phi),
+                          radius * math.cos(theta)))
+    verts.append((0.0, 0.0, -radius))
+    bottom = len(verts) - 1
+    faces = [(0, 1 + j, 1 + (j + 1) % segments) for j in range(segments)]
+    for i in range(rings - 2):
+        a, b = 1 + i * segments, 1 + (i + 1) * segments
+        faces += [(a + j, b + j, b + (j + 1) % segments, a + (j + 1) % segments) for j in range(segments)]
+    last = 1 + (rings - 2) * segments
+    faces += [(last + (j + 1) % segments, last + j, bottom) for j in range(segments)]
+    mesh = data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    mesh.shade_smooth()
+    return mesh
