@@ -35,18 +35,21 @@ RECORD_VERSION = 1
 # ----------------------------------------------------------------------------- scene fingerprints
 
 
-def _feed(h, v) -> None:
-    """Feed a canonical encoding of a scene-dict value into hash ``h`` (dict keys sorted)."""
+def update_hash(h, v) -> None:
+    """Feed a canonical encoding of a scene-dict value into hash ``h`` (dict keys sorted).
+
+    Used for frame records here and for the report's render cache.
+    """
     if isinstance(v, Mapping):
         h.update(b"{")
         for k in sorted(v, key=str):
-            _feed(h, str(k))
-            _feed(h, v[k])
+            update_hash(h, str(k))
+            update_hash(h, v[k])
         h.update(b"}")
     elif isinstance(v, (list, tuple)):
         h.update(b"[")
         for x in v:
-            _feed(h, x)
+            update_hash(h, x)
         h.update(b"]")
     elif isinstance(v, (bool, np.bool_)):
         h.update(b"b1;" if v else b"b0;")
@@ -85,7 +88,7 @@ def dict_fingerprint(scene: Mapping) -> str:
         return v
 
     h = hashlib.sha256()
-    _feed(h, {k: no_film_size(v) for k, v in scene.items()})
+    update_hash(h, {k: no_film_size(v) for k, v in scene.items()})
     return "sha256:" + h.hexdigest()
 
 

@@ -7,9 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from ..io import Frame, read_exr, write_exr
+from ..render.record import update_hash
 from .config import INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
 
 
@@ -59,26 +58,6 @@ def _cached(path: Path, spp: int, resolution: tuple[int, int]) -> Frame | None:
     return fr
 
 
-def _hash_value(h, x: Any) -> None:
-    """Feed a canonical encoding of a scene-dict value into the hash ``h``."""
-    if isinstance(x, dict):
-        h.update(b"{")
-        for k in sorted(x, key=str):
-            h.update(repr(k).encode())
-            _hash_value(h, x[k])
-        h.update(b"}")
-    elif isinstance(x, (list, tuple)):
-        h.update(b"[")
-        for v in x:
-            _hash_value(h, v)
-        h.update(b"]")
-    elif isinstance(x, (str, int, float, bool)) or x is None:
-        h.update(repr(x).encode())
-    else:  # Mitsuba objects: transforms (their matrix), bitmaps (their pixels)
-        arr = np.asarray(x.matrix if hasattr(x, "matrix") else x, dtype=np.float64)
-        h.update(type(x).__name__.encode() + repr(arr.shape).encode() + arr.tobytes())
-
-
 def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
     """What to render and its fingerprint: ``(dict or path, 12 hex digits)``.
 
@@ -93,10 +72,10 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
 
         kind, arg = str(scene).split(":", 1)
         d = scenes.test_scene(arg, resolution=resolution) if kind == "test" else scenes.random_scene(int(arg), resolution=resolution)
-        _hash_value(h, d)
+        update_hash(h, d)
         return {**d, "kpcn_name": str(scene)}, h.hexdigest()[:12]
     if isinstance(scene, dict):
-        _hash_value(h, scene)
+        update_hash(h, scene)
         return scene, h.hexdigest()[:12]
     h.update(Path(scene).read_bytes())
     return scene, h.hexdigest()[:12]
