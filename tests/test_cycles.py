@@ -196,8 +196,8 @@ def test_blend_file_transparent_film_and_dotted_view_layer(cycles_dir):
     """A saved .blend: its size and view layer are kept, the changed settings logged; a transparent film
     (background not in Combined, but in the Environment pass) still splits exactly."""
     blend = cycles_dir / "scene.blend"
-    code = ("import bpy, sys; from kpcn.render.cycles import _build_scene\n"
-            "bpy.ops.wm.read_factory_settings(use_empty=True); s = bpy.context.scene; _build_scene(bpy, s)\n"
+    code = ("import bpy, sys; from kpcn.render.cycles_scene import build_scene\n"
+            "bpy.ops.wm.read_factory_settings(use_empty=True); s = bpy.context.scene; build_scene(bpy, s)\n"
             "s.render.resolution_x, s.render.resolution_y = 24, 16; s.render.film_transparent = True\n"
             "s.view_layers[0].name = 'Layer.One'; s.cycles.samples = 1024\n"
             "bpy.ops.wm.save_as_mainfile(filepath=sys.argv[1])\n")

@@ -14,7 +14,8 @@ tiles with a halo), :mod:`.pipeline` (one frame, end to end), :mod:`.paths`
 (which file a path names: no output ever replaces an input, for the API and the
 CLI alike), :mod:`.cli`.
 """
-from .pipeline import PASSTHROUGH_REL_STD, DenoiseResult, DenoiseStats, denoise, denoise_result, peak_rss_mb
+from .pipeline import PASSTHROUGH_REL_STD, denoise, denoise_result
+from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .tiling import Tile, plan_tiles, tile_size
 from .weights import DEFAULT_MODEL, DefaultWeightsMissing, describe, load_model, resolve_device, resolve_weights
 

@@ -32,7 +32,6 @@ import contextlib
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
 from typing import Mapping
 
 import numpy as np
@@ -41,6 +40,7 @@ import torch
 from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
+from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .tiling import plan_tiles, tile_size
 from .weights import choose_default, describe, load_model, resolve_device
 
@@ -50,77 +50,6 @@ __all__ = ["denoise", "denoise_result", "DenoiseResult", "DenoiseStats", "PASSTH
 PASSTHROUGH_REL_STD = 1e-3
 
 _THREE_CHANNEL = ("color", "diffuse", "specular", "albedo", "normal")
-
-
-@dataclass
-class DenoiseStats:
-    """What one :func:`denoise_result` call did and how long it took.
-
-    Attributes:
-        seconds: wall time of the denoising (inputs, network, assembly), without reading or writing files.
-        read_seconds, write_seconds: time spent reading the input / writing the output EXR.
-        size: ``(H, W)`` of the frame.
-        tile, halo, alignment: interior tile size, halo and crop alignment in pixels.
-        tiles: number of tiles; tiles_run: tiles on which at least one branch ran.
-        tiles_passed_through: no-hit, converged tiles whose output is the noisy colour.
-        tiles_zero: tiles with every branch zero (output exactly 0; nothing run).
-        tiles_fp32_fallback: ``half=True`` only: tiles re-run in float32 because float16 overflowed.
-        branches_skipped: branches not run anywhere because their colour is zero over the whole frame.
-        branch_tiles_run / branch_tiles_skipped: per branch, tiles on which it ran / was left out.
-        frame_context_seconds: time spent on the whole-frame context (models that use one).
-        device: where the network ran.
-        peak_rss_mb: the process's peak resident memory after the call (an upper bound for this call).
-        peak_cuda_mb: peak CUDA memory allocated by torch during the call (CUDA only).
-        nonfinite: NaN/Inf values replaced per layer (by the reader or here).
-    """
-
-    seconds: float = 0.0
-    read_seconds: float = 0.0
-    write_seconds: float = 0.0
-    size: tuple[int, int] = (0, 0)
-    tile: int = 0
-    halo: int = 0
-    alignment: int = 1
-    tiles: int = 0
-    tiles_run: int = 0
-    tiles_passed_through: int = 0
-    tiles_zero: int = 0
-    tiles_fp32_fallback: int = 0
-    branches_skipped: tuple[str, ...] = ()
-    branch_tiles_run: dict[str, int] = field(default_factory=dict)
-    branch_tiles_skipped: dict[str, int] = field(default_factory=dict)
-    frame_context_seconds: float = 0.0
-    device: str = "cpu"
-    peak_rss_mb: float | None = None
-    peak_cuda_mb: float | None = None
-    nonfinite: dict[str, int] = field(default_factory=dict)
-
-    def summary(self) -> str:
-        h, w = self.size
-        parts = [f"{w}x{h}", f"{self.seconds:.2f} s", f"tiles run {self.tiles_run}/{self.tiles}"]
-        if self.tiles_passed_through:
-            parts.append(f"passed through {self.tiles_passed_through}")
-        if self.tiles_zero:
-            parts.append(f"zero {self.tiles_zero}")
-        if self.branches_skipped:
-            parts.append(f"branch skipped: {', '.join(self.branches_skipped)}")
-        else:
-            partial = [f"{b} on {self.branch_tiles_run[b]}/{self.tiles}" for b in self.branch_tiles_run
-                       if self.branch_tiles_skipped.get(b)]
-            if partial:
-                parts.append("ran " + ", ".join(partial))
-        return ", ".join(parts)
-
-
-@dataclass
-class DenoiseResult:
-    """Denoised colour ``(H, W, 3)`` float32, the stats, and the model's description."""
-
-    color: np.ndarray
-    stats: DenoiseStats
-    model_name: str = ""
-    out_path: str | None = None
-    layers: dict[str, np.ndarray] = field(default_factory=dict)  #: other layers denoised with the beauty's kernels
 
 
 def _source_path(src) -> str | None:
@@ -199,23 +128,6 @@ def _tensors(frame: Frame, names, crop, device: torch.device) -> dict[str, torch
 
 def _autocast(half: bool):
     return torch.autocast("cuda", dtype=torch.float16) if half else contextlib.nullcontext()
-
-
-def peak_rss_mb() -> float | None:
-    """The process's peak resident memory (``VmHWM``) in MiB."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    try:
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    except Exception:  # pragma: no cover - non-POSIX
-        return None
 
 
 def denoise_result(
