@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
 
 from kpcn.checkpoint import load_train_state, read_weights, weights_sha256
@@ -38,7 +39,8 @@ def test_training_lowers_the_loss(tiny_dataset, tmp_path):
     from kpcn.data import PatchDataset
     from kpcn.train import build_model, split_pairs
 
-    cfg = tiny_cfg(tiny_dataset, tmp_path, stage1_steps=40, stage2_steps=0)
+    # the patches of the fixed batch are not augmented: neither are the training ones here
+    cfg = tiny_cfg(tiny_dataset, tmp_path, stage1_steps=40, stage2_steps=0, augment=False)
     out = train(cfg, progress=False)
     assert np.isfinite(out["losses"]).all() and len(out["losses"]) == 40
     # the same initial weights as the run (seeded), and the trained ones, on one fixed batch of patches
@@ -102,3 +104,33 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
     model = build_model(load_config(RunConfig, None, sets[3:6]))
     model.load_state_dict(weights)
     assert weights_sha256(model.state_dict()) == hashes[0]
+
+
+def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_path):
+    """The rate is a function of the step and the transforms of (seed, step): a resumed run repeats the losses."""
+    from kpcn.schedule import lr_at
+
+    kw = dict(stage1_steps=4, stage2_steps=3, schedule="onecycle", augment=True, loss="l1_msssim")
+    full = train(tiny_cfg(tiny_dataset, tmp_path, name="full", **kw), progress=False)["losses"]
+    cut = tiny_cfg(tiny_dataset, tmp_path, name="cut", **{**kw, "stage1_steps": 4, "stage2_steps": 0})
+    first = train(cut, progress=False)["losses"]
+    rest = train(tiny_cfg(tiny_dataset, tmp_path, name="cut", **kw), resume=True, progress=False)["losses"]
+    np.testing.assert_allclose(first + rest, full, rtol=1e-5)
+    # the schedule: warm-up from lr/25 to the peak, then down to far below it, within each stage
+    rates = [lr_at(s, 0, 100, 1e-3, "onecycle", 0.2) for s in range(100)]
+    assert rates[0] == pytest.approx(1e-3 / 25) and max(rates) == pytest.approx(1e-3, rel=1e-3)
+    assert int(np.argmax(rates)) in (19, 20) and rates[-1] < 1e-6
+    assert all(a <= b for a, b in zip(rates[:20], rates[1:21])) and all(a >= b for a, b in zip(rates[20:], rates[21:]))
+
+
+def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_dataset, tmp_path):
+    from kpcn.train_data import CONVERGED_SPP, split_pairs
+
+    cfg = tiny_cfg(tiny_dataset, tmp_path)
+    plain, val = split_pairs(cfg, progress=False)
+    cfg.data.converged_inputs = True
+    more, val2 = split_pairs(cfg, progress=False)
+    extra = [p for p in more if p.spp == CONVERGED_SPP]
+    assert val == val2 and len(more) == len(plain) + len(extra)
+    assert {p.scene for p in extra} == {p.scene for p in plain}
+    assert all(p.input_path == p.reference_path for p in extra)

@@ -74,6 +74,10 @@ class InputSpec:
         targets: ``targets(reference_buffers, inputs) -> {"y_<branch>", "y_color"}``.
         reconstruct: ``reconstruct(outputs, inputs) -> (B, 3, H, W)`` colour from
             the denoised branches (a branch missing from ``outputs`` is zero).
+        rgb_starts: first channels of the RGB triplets of a branch tensor (colour
+            and colour-like features, permuted together by :mod:`kpcn.augment`).
+        grad_x, grad_y: ``(start, stop)`` of the channels that are forward
+            differences in x / in y (in the same feature order), or None.
     """
 
     name: str
@@ -88,6 +92,9 @@ class InputSpec:
     build: Callable[..., Tensors] = field(repr=False)
     targets: Callable[[Tensors, Tensors], Tensors] = field(repr=False)
     reconstruct: Callable[[Tensors, Tensors], torch.Tensor] = field(repr=False)
+    rgb_starts: tuple[int, ...] = (0,)
+    grad_x: tuple[int, int] | None = None
+    grad_y: tuple[int, int] | None = None
 
     def layers_for(self, branches) -> tuple[str, ...]:
         """The layers needed to build only ``branches``."""
@@ -180,6 +187,10 @@ def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
         name=name, description=description, layers=layers, branches=("diffuse", "specular"),
         channels=27 if variances else 23, branch_layers=branch_layers, halo=1, uses_depth_scale=True,
         target_layers=("diffuse", "specular"), build=build, targets=_split_targets, reconstruct=split_reconstruct,
+        # channel order (kpcn.features): colour 3, [variance 1], d/dx of colour 3, normal 3, albedo 3, depth 1,
+        # d/dy of the same 10, [variances of normal, albedo, depth]
+        rgb_starts=(0, 4, 10, 14, 20) if variances else (0, 3, 9, 13, 19),
+        grad_x=(4, 14) if variances else (3, 13), grad_y=(14, 24) if variances else (13, 23),
     )
 
 
@@ -216,5 +227,5 @@ COLOR_ALBEDO_NORMAL = register_input_spec(InputSpec(
     description="colour + albedo + normal, no split and no variances (what OIDN takes; 9 channels)",
     layers=("color", "albedo", "normal"), branches=("color",), channels=9, branch_layers={"color": ("color",)},
     halo=0, uses_depth_scale=False, target_layers=("color",), build=_can_build, targets=_can_targets,
-    reconstruct=_can_reconstruct,
+    reconstruct=_can_reconstruct, rgb_starts=(0, 3),
 ))

@@ -6,6 +6,11 @@
 * ``log``     the log-space loss of Salehi et al. 2022: with ``x' = log(1 + x)``,
   ``0.5 |x' - y'| / (y' + eps) + 0.5 |LoG(x') - LoG(y')| / (y' + eps)``,
   LoG a 5×5 Laplacian-of-Gaussian filter applied per channel.
+* ``l1_msssim`` ``0.16 · L1 + 0.84 · (1 - MS-SSIM)`` (Zhao et al. 2017's mix, as
+  OIDN trains), both on tone-mapped values ``x / (1 + x)`` so that SSIM's
+  constants suit HDR radiance; MS-SSIM over 3 scales of 2×2 average pooling,
+  Gaussian window σ = 1.5 (7×7), so that 64-pixel patches have room for all scales
+  (smaller patches use fewer scales).
 """
 from __future__ import annotations
 
@@ -77,3 +82,58 @@ def log_loss(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-2) -> torch.Tenso
     spatial = ((xl - yl).abs() * w).mean()
     freq = ((laplacian_of_gaussian(xl) - laplacian_of_gaussian(yl)).abs() * w).mean()
     return 0.5 * spatial + 0.5 * freq
+
+
+def _gauss_window(size: int = 7, sigma: float = 1.5, dtype=torch.float32) -> torch.Tensor:
+    r = torch.arange(size, dtype=torch.float64) - size // 2
+    g = torch.exp(-(r**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).to(dtype)
+
+
+def _ssim_parts(x: torch.Tensor, y: torch.Tensor, win: torch.Tensor, c1: float, c2: float):
+    """Per-pixel luminance and contrast-structure terms of SSIM (valid windows only)."""
+    c = x.shape[1]
+    w = win.to(x.device, x.dtype).expand(c, 1, *win.shape)
+
+    def blur(t):
+        return F.conv2d(t, w, groups=c)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    lum = (2 * mx * my + c1) / (mx * mx + my * my + c1)
+    cs = (2 * sxy + c2) / (sxx + syy + c2)
+    return lum, cs
+
+
+def ms_ssim(x: torch.Tensor, y: torch.Tensor, scales: int = 3, weights=None) -> torch.Tensor:
+    """Multi-scale SSIM of ``(B, C, H, W)`` images with values in about [0, 1] (Wang et al. 2003).
+
+    ``weights`` per scale (default: the first ``scales`` of Wang's five, renormalised); the
+    contrast-structure term at each scale, luminance only at the coarsest. The side must be at
+    least ``7 · 2**(scales - 1)`` pixels.
+    """
+    base = torch.tensor([0.0448, 0.2856, 0.3001, 0.2363, 0.1333], dtype=torch.float64)
+    wts = torch.as_tensor(weights if weights is not None else base[:scales] / base[:scales].sum(), dtype=torch.float64)
+    win = _gauss_window(dtype=x.dtype)
+    if min(x.shape[-2:]) < win.shape[-1] * 2 ** (scales - 1):
+        raise ValueError(f"ms_ssim: images of {tuple(x.shape[-2:])} are too small for {scales} scales "
+                         f"(need a side of {win.shape[-1] * 2 ** (scales - 1)})")
+    c1, c2 = 0.01**2, 0.03**2
+    value = torch.ones((), dtype=x.dtype, device=x.device)
+    for s in range(scales):
+        lum, cs = _ssim_parts(x, y, win, c1, c2)
+        term = (lum * cs).mean() if s == scales - 1 else cs.mean()
+        value = value * term.clamp_min(1e-6) ** float(wts[s])
+        if s < scales - 1:
+            x, y = F.avg_pool2d(x, 2), F.avg_pool2d(y, 2)
+    return value
+
+
+@register_loss("l1_msssim")
+def l1_msssim(x: torch.Tensor, y: torch.Tensor, alpha: float = 0.84) -> torch.Tensor:
+    xt, yt = x.clamp_min(0), y.clamp_min(0)
+    xt, yt = xt / (1 + xt), yt / (1 + yt)
+    side = min(x.shape[-2:])
+    scales = 1 + max(0, min(2, int(math.floor(math.log2(max(side, 7) / 7)))))  # as many of 3 as the patch holds
+    return (1 - alpha) * (xt - yt).abs().mean() + alpha * (1 - ms_ssim(xt, yt, scales))

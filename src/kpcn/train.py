@@ -72,6 +72,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from .augment import augment_batch
 from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
 from .data import FrameDataset, PatchDataset
@@ -96,6 +97,7 @@ from .train_steps import (
     build_model,
     compute_loss,
     model_inputs,
+    set_lr,
     stage_of,
     validate,
 )
@@ -227,6 +229,9 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
             optimizer = _make_optimizer(model, stage2_lr)
             current_stage = stage
         batch = {k: v.to(d.device, non_blocking=True) for k, v in batch.items()}
+        if cfg.train.augment:  # the same transforms for the same (seed, step, rank): resumable
+            batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
+        lr_now = set_lr(optimizer, step, cfg)
         out = ddp(model_inputs(model, batch))
         loss = compute_loss(out, batch, stage, cfg, spec.branches)
         if not torch.isfinite(loss):
@@ -245,6 +250,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
             rate = n_patches / (time.perf_counter() - t0)
             bar.set_postfix(stage=stage, loss=f"{np.mean(losses[-cfg.train.log_every:]):.4g}", patches_s=f"{rate:.1f}")
             writer.add_scalar(f"loss/stage{stage}", loss_value, done)
+            writer.add_scalar("lr", lr_now, done)
             writer.add_scalar("throughput/patches_per_s", rate, done)
         if done % cfg.train.ckpt_every == 0 or done == total:
             checkpoint(done)

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 
 from .config import ConfigError, from_dict
+from .schedule import SCHEDULES
 
 __all__ = ["RunConfig", "DataConfig", "TrainConfig", "check_model_section"]
 
@@ -41,6 +42,9 @@ class DataConfig:
     val_root: str | None = None  #: held-out frames; None: the last `val_scenes` scenes of root
     val_scenes: int = 2
     spp: list[int] | None = None  #: input spp to train on (None: all)
+    #: also train on each training scene's reference as its own input (target = itself): the
+    #: converged end of the spp range, so the model learns to leave a clean frame alone
+    converged_inputs: bool = False
     patch_size: int = 65
     patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
     sampling: str = "importance"
@@ -81,6 +85,9 @@ class TrainConfig:
     stage2_lr: float | None = None  #: None: same as lr
     loss: str = "l1"
     stage2_loss: str | None = None  #: None: same as loss
+    schedule: str = "constant"  #: constant, or onecycle (per stage: warm-up to lr, cosine down; see kpcn.schedule)
+    warmup: float = 0.15  #: onecycle: the fraction of each stage spent warming up
+    augment: bool = True  #: flips, transposes and RGB permutations of every patch (kpcn.augment)
     grad_clip: float = 1.0
     val_every: int = 250
     ckpt_every: int = 100  #: also writes checkpoints/step_<N>.pt
@@ -105,6 +112,10 @@ class TrainConfig:
             raise ConfigError("train.stage1_steps + train.stage2_steps: must be >= 1, got 0")
         for key in ("lr", "stage2_lr"):
             _positive("train", self, key)
+        if self.schedule not in SCHEDULES:
+            raise ConfigError(f"train.schedule: expected one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if not (0.0 <= self.warmup < 1.0):
+            raise ConfigError(f"train.warmup: must be in [0, 1), got {self.warmup!r}")
         if not (math.isfinite(self.grad_clip) and self.grad_clip >= 0):
             raise ConfigError(f"train.grad_clip: must be >= 0 (0: off), got {self.grad_clip!r}")
         if not (self.device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", self.device)):

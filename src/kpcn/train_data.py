@@ -10,7 +10,7 @@ from .train_config import RunConfig
 
 log = logging.getLogger("kpcn.train")  # the training log, whichever module of it speaks
 
-__all__ = ["ensure_dataset", "split_pairs"]
+__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP"]
 
 
 def _is_default_dataset(status, d) -> bool:
@@ -69,4 +69,18 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
     scenes = sorted({p.scene for p in pairs})
     n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
     val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
-    return [p for p in pairs if p.scene not in val_scenes], [p for p in pairs if p.scene in val_scenes]
+    train = [p for p in pairs if p.scene not in val_scenes]
+    return train + (converged_pairs(train) if cfg.data.converged_inputs else []), \
+        [p for p in pairs if p.scene in val_scenes]
+
+
+def converged_pairs(pairs):
+    """One (reference, reference) pair per scene of ``pairs``: a converged input whose target is itself."""
+    from .data import FramePair
+
+    refs = {p.scene: p.reference_path for p in pairs}
+    return [FramePair(scene, CONVERGED_SPP, ref, ref) for scene, ref in sorted(refs.items())]
+
+
+#: the ``spp`` label of a converged pair (its input is the reference render itself)
+CONVERGED_SPP = 0

@@ -10,9 +10,10 @@ from .distributed import Dist
 from .losses import create_loss
 from .metrics import all_metrics, tonemap
 from .models import create_model
+from .schedule import lr_at
 from .train_config import RunConfig
 
-__all__ = ["build_model", "stage_of", "model_inputs", "compute_loss", "batches", "validate"]
+__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "compute_loss", "batches", "validate"]
 
 
 def build_model(cfg: RunConfig) -> torch.nn.Module:
@@ -26,6 +27,18 @@ def _unwrap(model):
 
 def stage_of(step: int, cfg: RunConfig) -> int:
     return 1 if step < cfg.train.stage1_steps else 2
+
+
+def set_lr(optimizer, step: int, cfg: RunConfig) -> float:
+    """Set (and return) the rate of ``step`` from ``train.schedule``, within its stage."""
+    t = cfg.train
+    if stage_of(step, cfg) == 1:
+        lr = lr_at(step, 0, t.stage1_steps, t.lr, t.schedule, t.warmup)
+    else:
+        lr = lr_at(step, t.stage1_steps, t.stage2_steps, t.stage2_lr or t.lr, t.schedule, t.warmup)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    return lr
 
 
 def model_inputs(model, batch: dict) -> dict:

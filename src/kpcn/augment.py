@@ -1,0 +1,122 @@
+"""Training augmentation: flips, transposes and colour-channel permutations of built patches.
+
+OIDN's training flips, transposes and permutes the colour channels of every
+patch; kpcn does the same, but on the tensors the input spec has already
+built (:mod:`kpcn.inputs`), so the data set is preprocessed once. The spec
+says which channels are RGB triplets (``rgb_starts``: colour, and the
+gradients of colour and albedo) and which are forward differences in x and y
+(``grad_x``, ``grad_y``); every other key of a batch (``albedo``, targets
+``y_*``, ``noisy_color``) is one RGB triplet.
+
+What each transform does to a patch ``(C, H, W)``:
+
+* **transpose** (swap x and y): the image is transposed and the ``grad_x`` and
+  ``grad_y`` channel blocks trade places — exactly the features of the
+  transposed frame;
+* **flip in x**: the image is mirrored, and the x-differences become the
+  negated differences one pixel over (a forward difference of the mirrored
+  image is minus the backward difference of the original). The last column's
+  difference would read the pixel outside the patch: it is set to 0, which is
+  what the features hold on a frame's last column anyway. Flip in y alike;
+* **channel permutation**: the same permutation of R, G, B in every triplet of
+  every key. Normals, depth and variances are not colours and are not permuted
+  (variances are means over the channels).
+
+Normals stay as they are under the spatial transforms: they are world-space
+vectors, unrelated to the image axes (OIDN does the same).
+
+Every transform is chosen per patch from a generator seeded by the training
+seed and the step, so a resumed run sees the same augmented batches.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .inputs import InputSpec, get_input_spec
+
+__all__ = ["Augmentation", "augment_patch", "augment_batch"]
+
+PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """One patch's transform: flips (in x, in y), transpose, and an RGB permutation (index into ``PERMUTATIONS``)."""
+
+    flip_x: bool = False
+    flip_y: bool = False
+    transpose: bool = False
+    perm: int = 0
+
+    @classmethod
+    def draw(cls, g: torch.Generator, flips: bool = True, channels: bool = True) -> "Augmentation":
+        r = torch.randint(0, 2, (3,), generator=g).tolist()
+        p = int(torch.randint(0, len(PERMUTATIONS), (1,), generator=g))
+        return cls(bool(r[0]) and flips, bool(r[1]) and flips, bool(r[2]) and flips, p if channels else 0)
+
+
+def _flip_differences(x: torch.Tensor, block: tuple[int, int] | None, dim: int) -> torch.Tensor:
+    """``x`` mirrored along ``dim`` (-1: x, -2: y), with the forward differences of ``block`` corrected."""
+    x = x.flip(dim)
+    if block is None:
+        return x
+    a, b = block
+    d = x[..., a:b, :, :]
+    fixed = torch.zeros_like(d)
+    if dim == -1:  # mirrored x' = x[W-1-j]: x'[j+1] - x'[j] = -(x[W-1-j] - x[W-2-j]) = -d[j+1]
+        fixed[..., :-1] = -d[..., 1:]
+    else:
+        fixed[..., :-1, :] = -d[..., 1:, :]
+    return torch.cat([x[..., :a, :, :], fixed, x[..., b:, :, :]], dim=-3)
+
+
+def _permute_rgb(x: torch.Tensor, starts, perm: tuple[int, int, int]) -> torch.Tensor:
+    idx = list(range(x.shape[-3]))
+    for s in starts:
+        for i, j in enumerate(perm):
+            idx[s + i] = s + j
+    return x[..., idx, :, :]
+
+
+def augment_patch(x: torch.Tensor, aug: Augmentation, spec: InputSpec | None = None) -> torch.Tensor:
+    """``x`` ``(..., C, H, W)`` transformed by ``aug``: a branch tensor of ``spec``, or (``spec=None``) an RGB triplet."""
+    gx, gy = (spec.grad_x, spec.grad_y) if spec is not None else (None, None)
+    starts = spec.rgb_starts if spec is not None else (0,)
+    if aug.transpose:
+        x = x.transpose(-1, -2)
+        if gx is not None:
+            (a, b), (c, d) = gx, gy
+            if b - a != d - c:
+                raise ValueError(f"{spec.name}: grad_x {gx} and grad_y {gy} must have as many channels")
+            idx = list(range(x.shape[-3]))
+            idx[a:b], idx[c:d] = list(range(c, d)), list(range(a, b))
+            x = x[..., idx, :, :]
+    if aug.flip_x:
+        x = _flip_differences(x, gx, -1)
+    if aug.flip_y:
+        x = _flip_differences(x, gy, -2)
+    if aug.perm:
+        x = _permute_rgb(x, starts, PERMUTATIONS[aug.perm])
+    return x.contiguous()
+
+
+def augment_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: torch.Generator,
+                  flips: bool = True, channels: bool = True) -> dict[str, torch.Tensor]:
+    """Each patch of ``batch`` (``(B, C, H, W)`` tensors) under its own random :class:`Augmentation`.
+
+    Keys that are branches of ``spec`` are transformed as its features; every other key is an RGB triplet.
+    Patches must be square when transposes are on (the batch is stacked again).
+    """
+    spec = get_input_spec(spec)
+    n = next(iter(batch.values())).shape[0]
+    augs = [Augmentation.draw(g, flips, channels) for _ in range(n)]
+    out = {}
+    for k, v in batch.items():
+        s = spec if k in spec.branches else None
+        if s is None and v.shape[-3] != 3:
+            raise ValueError(f"augment_batch: {k!r} has {v.shape[-3]} channels; only branches of {spec.name} "
+                             f"and RGB (3-channel) entries can be augmented")
+        out[k] = torch.stack([augment_patch(v[i], a, s) for i, a in enumerate(augs)])
+    return out

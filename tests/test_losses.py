@@ -1,0 +1,39 @@
+"""Training losses (pure maths on synthetic arrays)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from kpcn.losses import create_loss, list_losses, ms_ssim
+
+
+def test_ms_ssim_is_one_for_equal_images_and_falls_with_noise():
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 64, 64, generator=g)
+    assert float(ms_ssim(x, x)) == pytest.approx(1.0, abs=1e-6)
+    values = [float(ms_ssim(x, (x + s * torch.randn(x.shape, generator=g)).clamp(0, 1))) for s in (0.02, 0.1, 0.3)]
+    assert values[0] > values[1] > values[2] and values[0] < 1
+    with pytest.raises(ValueError, match="too small"):
+        ms_ssim(x[..., :20, :20], x[..., :20, :20], scales=3)
+
+
+def test_ms_ssim_sees_structure_that_l1_does_not():
+    """A blur and a constant offset of the same mean absolute error: MS-SSIM penalises the blur more."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(1, 1, 64, 64, generator=g) * 0.5 + 0.25
+    blurred = torch.nn.functional.avg_pool2d(x, 5, 1, 2, count_include_pad=False)
+    offset = x + (blurred - x).abs().mean()
+    assert float(ms_ssim(x, blurred)) < float(ms_ssim(x, offset))
+
+
+@pytest.mark.parametrize("name", list_losses())
+def test_every_loss_is_zero_at_the_target_positive_elsewhere_and_differentiable(name):
+    loss = create_loss(name)
+    g = torch.Generator().manual_seed(2)
+    y = torch.rand(2, 3, 32, 32, generator=g) * 4
+    x = (y + 0.3 * torch.randn(y.shape, generator=g)).clamp_min(0).requires_grad_()
+    assert float(loss(y, y)) == pytest.approx(0.0, abs=1e-6)
+    value = loss(x, y)
+    assert float(value.detach()) > 0
+    value.backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
