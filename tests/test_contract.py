@@ -36,7 +36,12 @@ def _variants():
         if "input_spec" in fields:
             default = fields["input_spec"].default
             out += [(name, {"input_spec": s}) for s in list_input_specs() if s != default]
+        out += [(name, kw) for kw in OPTION_VARIANTS.get(name, [])]
     return out
+
+
+#: options that change how a model reconstructs (each runs through the contract tests too)
+OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"kernel_scales": 2, "input_spec": "color_albedo_normal"}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -89,10 +94,11 @@ def test_frame_context_and_alignment_matter(frame, monkeypatch):
     assert _rel(whole, inference.denoise(frame, model, tile=20, device="cpu", skip=False)) > 1e-4
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_declared_receptive_radius_bounds_the_dependence(name):
+@pytest.mark.parametrize("name,kw", [(n, {}) for n in list_models()] + [(n, kw) for n, kws in OPTION_VARIANTS.items() for kw in kws],
+                         ids=lambda v: v if isinstance(v, str) else ",".join(f"{k}={x}" for k, x in v.items()) or "default")
+def test_declared_receptive_radius_bounds_the_dependence(name, kw):
     """Changing inputs just beyond the declared radius leaves the centre pixel unchanged."""
-    model = _sharp(name)
+    model = _sharp(name, **kw)
     spec = model.input_spec
     r = model.receptive_radius
     size = 2 * r + 9

@@ -22,10 +22,28 @@ Each branch of the input spec (diffuse and specular for the split specs, one
 The input is padded (replicate) at the bottom/right to a multiple of
 ``alignment = 2**(len(widths) - 1)`` and the output cropped back.
 
+**Multi-scale kernels** (Vogels et al. 2018; ``kernel_scales = n > 1``): the
+decoder predicts a kernel at each of the ``n`` finest levels, each applied to
+the noisy colour average-pooled to that level, so a ``k``×``k`` kernel at
+level ``l`` spans ``k·2**l`` pixels at the cost of a ``k``×``k`` one. Levels
+``l < n - 1`` also predict a per-pixel weight ``α = sigmoid(z)`` and the
+filtered levels are combined coarse to fine::
+
+    o_l = f_l - α_l · U(D(f_l)) + α_l · U(o_{l+1})
+
+(``D`` a 2×2 average pool, ``U`` bilinear 2× upsampling): ``α`` swaps the low
+frequencies of the fine result for the coarse one. A constant image stays
+constant and a zero branch stays zero (each term is linear in the colour and
+every kernel sums to one), but the output is no longer a convex combination of
+input pixels. Light groups filtered with :meth:`UNetBranch.kernels` and
+``apply_kernels`` still add up to the beauty, as the combination is linear in
+the colour.
+
 Receptive radius (full-resolution pixels): a 3×3 conv at level ``l`` adds
 ``2**l``; an average pool adds nothing beyond the pooled block; a nearest
-upsample into level ``l`` adds ``2**l``; the kernel reaches ``kernel_size // 2``.
-Multi-scale kernels (Vogels et al. 2018) are not in this first version.
+upsample into level ``l`` adds ``2**l``; the kernel reaches ``kernel_size // 2``
+(at level ``l``: ``(kernel_size // 2 + 2) · 2**l``, a bound that also covers the
+pooling block and the bilinear upsampling, summed over the kernel levels).
 """
 from __future__ import annotations
 
@@ -41,7 +59,7 @@ from .base import DenoiserModel, check_inputs
 from .kpcn import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
 from .registry import register_model
 
-__all__ = ["UNetConfig", "UNetBranch", "UNetKPCN"]
+__all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
 
 
 @dataclass
@@ -58,6 +76,9 @@ class UNetConfig:
         init_sigma: std (pixels) of the Gaussian the kernels start as.
         out_init_gain: scale of the head's initial weights.
         input_transform: ``log`` (signed log1p of the features), ``logvar`` or ``none``.
+        kernel_scales: levels with kernels, finest first (1: one full-resolution kernel;
+            ``n > 1``: Vogels et al.'s multi-scale reconstruction over the ``n`` finest levels,
+            at most ``len(widths) - 1``).
     """
 
     input_spec: str = "kpcn_split"
@@ -69,6 +90,7 @@ class UNetConfig:
     init_sigma: float = 1.0
     out_init_gain: float = 0.1
     input_transform: str = "log"
+    kernel_scales: int = 1
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -78,6 +100,9 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.convs_per_level must be >= 1, got {self.convs_per_level}")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise ValueError(f"UNetConfig.kernel_size must be a positive odd integer, got {self.kernel_size}")
+        if not 1 <= self.kernel_scales <= max(1, len(self.widths) - 1):
+            raise ValueError(f"UNetConfig.kernel_scales must be in 1..{max(1, len(self.widths) - 1)} "
+                             f"(len(widths) - 1), got {self.kernel_scales}")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
@@ -98,6 +123,13 @@ class UNetConfig:
         encoder = c * sum(scales)
         decoder = sum(s * (1 + c) for s in scales[:-1])
         return encoder + decoder
+
+    @property
+    def kernel_radius(self) -> int:
+        """How far the kernels (and, with several scales, their pooling and upsampling) reach."""
+        if self.kernel_scales == 1:
+            return self.kernel_size // 2
+        return sum((self.kernel_size // 2 + 2) * 2**level for level in range(self.kernel_scales))
 
 
 def _convs(c_in: int, c_out: int, n: int) -> nn.Sequential:
@@ -128,13 +160,22 @@ class UNetBranch(nn.Module):
         for level in range(len(w) - 2, -1, -1):
             self.dec.append(_convs(below + w[level], w[level], cfg.convs_per_level))
             below = w[level]
-        k = cfg.kernel_size
-        self.head = nn.Conv2d(w[0], k * k, 1)
-        self.apply_kernels = KernelApply(k, "replicate")
-        nn.init.kaiming_normal_(self.head.weight, nonlinearity="linear")
+        k, n = cfg.kernel_size, cfg.kernel_scales
+        # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
+        # every level but the coarsest adds one blending-weight channel
+        self.head = self._make_head(w[0], k * k + (1 if n > 1 else 0))
+        self.heads = nn.ModuleList(self._make_head(w[lv], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
+        self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
+
+    def _make_head(self, width: int, out: int) -> nn.Conv2d:
+        k, cfg = self.cfg.kernel_size, self.cfg
+        head = nn.Conv2d(width, out, 1)
+        nn.init.kaiming_normal_(head.weight, nonlinearity="linear")
         with torch.no_grad():
-            self.head.weight.mul_(cfg.out_init_gain)
-            self.head.bias.copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
+            head.weight.mul_(cfg.out_init_gain)
+            head.bias.zero_()
+            head.bias[: k * k].copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
+        return head
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
         a = self.cfg.alignment
@@ -163,8 +204,12 @@ class UNetBranch(nn.Module):
     def forward(self, x: torch.Tensor, summary: torch.Tensor | None = None) -> torch.Tensor:
         return self.apply_kernels(x[:, :3].contiguous(), self.kernels(x, summary))
 
-    def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None) -> torch.Tensor:
-        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous)."""
+    def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None):
+        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous).
+
+        With ``kernel_scales > 1``: a :class:`MultiScaleKernels` (kernels and blending
+        weights of every level, at the padded size), which ``apply_kernels`` takes the same way.
+        """
         h_in, w_in = x.shape[-2:]
         feats = self.encode(x)
         h = feats[-1]
@@ -172,11 +217,56 @@ class UNetBranch(nn.Module):
             if summary is None:
                 summary = self.summarize(h)
             h = torch.cat([h, summary.expand(-1, -1, h.shape[-2], h.shape[-1])], dim=1)
-        for block, skip in zip(self.dec, reversed(feats[:-1])):
+        decoded = {}
+        for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
             h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
-        s = self.cfg.logit_scale
-        logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
-        return torch.softmax(logits, dim=1).contiguous()
+            decoded[level] = h
+        s, kk = self.cfg.logit_scale, self.cfg.kernel_size**2
+        if self.cfg.kernel_scales == 1:
+            logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
+            return torch.softmax(logits, dim=1).contiguous()
+        kernels, alphas = [], []
+        for level in range(self.cfg.kernel_scales):
+            z = (self.head if level == 0 else self.heads[level - 1])(decoded[level])
+            kernels.append(torch.softmax(torch.tanh(z[:, :kk] / s) * s, dim=1).contiguous())
+            alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
+        return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in))
+
+
+@dataclass(frozen=True)
+class MultiScaleKernels:
+    """Per-level kernels ``(B, k*k, H/2**l, W/2**l)`` and blending weights ``(B, 1, ...)`` (None at the coarsest),
+    at the size padded to the alignment; ``size`` is the unpadded ``(H, W)``."""
+
+    kernels: tuple[torch.Tensor, ...]
+    alphas: tuple[torch.Tensor | None, ...]
+    size: tuple[int, int]
+
+
+class MultiScaleApply(nn.Module):
+    """Apply :class:`MultiScaleKernels` to a colour ``(B, 3, H, W)``: filter each level, combine coarse to fine."""
+
+    def __init__(self, kernel_size: int, alignment: int) -> None:
+        super().__init__()
+        self.kernel_size, self.alignment = kernel_size, alignment
+        self.apply_one = KernelApply(kernel_size, "replicate")
+
+    def forward(self, colour: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
+        h, w = ks.size
+        a = self.alignment
+        colour = F.pad(colour, (0, (-w) % a, 0, (-h) % a), mode="replicate") if (h % a or w % a) else colour
+        filtered = []
+        level_colour = colour
+        for level, k in enumerate(ks.kernels):
+            if level:
+                level_colour = F.avg_pool2d(level_colour, 2)
+            filtered.append(self.apply_one(level_colour.contiguous(), k))
+        out = filtered[-1]
+        for level in range(len(filtered) - 2, -1, -1):
+            f, alpha = filtered[level], ks.alphas[level]
+            up = F.interpolate(out - F.avg_pool2d(f, 2), scale_factor=2, mode="bilinear", align_corners=False)
+            out = f + alpha * up
+        return out[..., :h, :w]
 
 
 class UNetKPCN(DenoiserModel):
@@ -192,7 +282,9 @@ class UNetKPCN(DenoiserModel):
 
     @property
     def receptive_radius(self) -> int:
-        return max(self.config.network_radius, self.config.kernel_size // 2)
+        if self.config.kernel_scales == 1:
+            return max(self.config.network_radius, self.config.kernel_radius)
+        return self.config.network_radius + self.config.kernel_radius
 
     @property
     def alignment(self) -> int:
