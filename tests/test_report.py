@@ -1,9 +1,12 @@
 """The error-against-time report (kpcn.report) and the OIDN baseline, on real tiny renders.
 
-The report runs once in --quick mode (two 24x24 scenes, spp 2 and 4, 64-spp
-reference) through the Python API with a tiny untrained stand-in model saved as
-a checkpoint (so nothing depends on shipped weights), then again through
-``python -m kpcn.report`` into the same folder, which must reuse the renders.
+The report runs once in --quick mode (three 24x24 scenes, one of them a shipped
+XML file, spp 2, 4 and 8, a 32-spp converged input, 128-spp reference) plus
+``test:no_hit`` (a camera that sees only a constant sky: nothing to denoise, so
+its equal-time figure means nothing) through the Python API with a tiny
+untrained stand-in model saved as a checkpoint (so nothing depends on shipped
+weights), then again through ``python -m kpcn.report`` into the same folder,
+which must reuse the renders.
 """
 from __future__ import annotations
 
@@ -18,13 +21,23 @@ import numpy as np
 import pytest
 
 from kpcn.baselines import oidn_available, oidn_denoise
+from kpcn.io import read_exr
+from kpcn.metrics import relmse
 from kpcn.report import (
     MC,
     METRICS,
+    OIDN_MACS_PER_PX,
+    Method,
     ReportConfig,
+    equal_time,
+    equal_time_headline,
+    evaluate_converged,
+    evaluate_scene,
     mc_spp_for_error,
     nearest_spp,
     parse_model_spec,
+    reference_floor,
+    render_scene,
     render_time_model,
     run_report,
 )
@@ -46,8 +59,13 @@ def stand_in(tmp_path_factory):
 @pytest.fixture(scope="module")
 def report(tmp_path_factory, stand_in, mi):
     out = tmp_path_factory.mktemp("report")
-    cfg = ReportConfig.quick(out=str(out), models=[f"kpcn={stand_in}"])
+    cfg = ReportConfig.quick(out=str(out), models=[f"kpcn={stand_in}"],
+                             scenes=[*ReportConfig.QUICK["scenes"], "test:no_hit"])
     return cfg, run_report(cfg)
+
+
+def _methods():
+    return ["kpcn"] + (["oidn"] if HAS_OIDN else [])
 
 
 def _csv_rows(path):
@@ -65,7 +83,7 @@ def _exr_mtimes(folder: Path) -> dict[str, int]:
 def test_csv_has_one_row_per_scene_spp_method(report):
     cfg, res = report
     rows = _csv_rows(res.paths["csv"])
-    methods = [MC, "kpcn"] + (["oidn"] if HAS_OIDN else [])
+    methods = [MC, *_methods()]
     keys = [(r["scene"], int(r["spp"]), r["method"]) for r in rows]
     assert sorted(keys) == sorted((s, p, m) for s in cfg.scenes for p in cfg.spp for m in methods)
     for r in rows:
@@ -85,8 +103,9 @@ def test_markdown_pngs_and_summary(report):
 
     cfg, res = report
     md = res.paths["markdown"].read_text()
-    for heading in ("## Mean over scenes", "## Equal time", "## Per scene"):
-        assert heading in md
+    headings = ("## Equal time", "## Mean over scenes", "## Against OIDN", "## Methods", "## Converged input",
+                "## Frames made worse than their input", "## Per scene")
+    assert [md.index(h) for h in headings] == sorted(md.index(h) for h in headings)
     if not HAS_OIDN:
         assert "OIDN was not installed" in md
     for key in ("plot", "contact_sheet"):
@@ -104,9 +123,9 @@ def test_markdown_pngs_and_summary(report):
     eq = summary["equal_time"]
     assert [e["scene"] for e in eq] == list(cfg.scenes)
     for e in eq:
-        assert e["model"] == "kpcn" and e["model_spp"] == 4  # 8 is off the quick ladder: nearest
+        assert e["model"] == "kpcn" and e["model_spp"] == 8
         assert e["mc_spp"] > 0 and e["time_ratio"] > 0 and isinstance(e["extrapolated"], bool)
-    assert summary["equal_time_geomean"]["time_ratio"] > 0
+    assert summary["equal_time_headline"]["statistic"] == "median"
     assert "time ratio" in md
 
 
@@ -127,12 +146,14 @@ def test_cli_reuses_cached_renders(report, stand_in):
     cfg, res = report
     renders = cfg.folder / "renders"
     before = _exr_mtimes(renders)
-    assert len(before) == len(cfg.scenes) * (len(cfg.spp) + 1)
+    assert len(before) == len(cfg.scenes) * (len(cfg.spp) + 2)  # ladder, converged input, reference
     assert res.rendered, "the first run rendered everything"
-    cmd = [sys.executable, "-m", "kpcn.report", "--quick", "--out", cfg.out, "--models", f"kpcn={stand_in}"]
+    cmd = [sys.executable, "-m", "kpcn.report", "--quick", "--out", cfg.out, "--models", f"kpcn={stand_in}",
+           "--scenes", *cfg.scenes]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "## Equal time" in proc.stdout and "| mc | 2 |" in proc.stdout
+    assert "## Converged input" in proc.stdout and "## Frames made worse" in proc.stdout
     assert "rendered" not in proc.stderr
     assert _exr_mtimes(renders) == before, "a second run must reuse the cached renders"
     rows = _csv_rows(res.paths["csv"])
@@ -142,6 +163,179 @@ def test_cli_reuses_cached_renders(report, stand_in):
     for r in rows:
         if r["method"] == MC:
             assert float(r["relmse"]) == pytest.approx(mc_old[(r["scene"], int(r["spp"]))], rel=1e-5)
+
+
+def _scene_renders(cfg, label):
+    """The fixture's cached renders of one scene (loaded from the report's cache: nothing is rendered)."""
+    sr = render_scene(cfg, label, progress=lambda msg: pytest.fail(f"rendered again: {msg}"))
+    assert not sr.rendered
+    return sr
+
+
+def test_rows_below_the_reference_floor_are_flagged(report):
+    cfg, res = report
+    for label in cfg.scenes:
+        sr = _scene_renders(cfg, label)
+        floor = reference_floor(sr.reference)
+        assert floor is not None and floor > 0
+        rows = [r for r in res.rows if r["scene"] == label]
+        for r in rows:
+            assert r["ref_floor"] == pytest.approx(floor, rel=1e-9)
+            assert r["ref_limited"] == (r["relmse"] < cfg.floor_factor * floor)
+        # the same renders judged with a huge and a tiny factor: every row, then no row, flagged
+        assert all(r["ref_limited"] for r in evaluate_scene(sr, [], floor_factor=1e12)[0])
+        assert not any(r["ref_limited"] for r in evaluate_scene(sr, [], floor_factor=1e-12)[0])
+    csv_rows = _csv_rows(res.paths["csv"])
+    assert {r["ref_limited"] for r in csv_rows} <= {"True", "False"}
+    assert sum(r["ref_limited"] == "True" for r in csv_rows) == sum(r["ref_limited"] for r in res.rows)
+    md = res.paths["markdown"].read_text()
+    assert f"below {cfg.floor_factor:g}× ref noise" in md
+    for m in res.means:  # the mean table counts the flagged rows
+        assert m["ref_limited"] == sum(r["ref_limited"] for r in res.rows if (r["method"], r["spp"]) == (m["method"], m["spp"]))
+
+
+def test_equal_time_headline_is_the_median_of_the_scenes_kept(report):
+    cfg, res = report
+    eq = res.equal_time
+    head = res.summary["equal_time_headline"]
+    kept = [e for e in eq if not e["left_out"]]
+    # the scene with nothing to denoise is left out, with its reason, in every output
+    no_hit = next(e for e in eq if e["scene"] == "test:no_hit")
+    assert no_hit["left_out"] and no_hit["why"]
+    assert {"scene": "test:no_hit", "why": no_hit["why"]} in head["left_out"]
+    assert "test:no_hit" not in head["scenes"] and head["scenes"] == [e["scene"] for e in kept]
+    assert kept, "the quick scenes must give at least one usable equal-time figure"
+    assert head["time_ratio"] == pytest.approx(float(np.median([e["time_ratio"] for e in kept])))
+    assert head["mc_spp"] == pytest.approx(float(np.median([e["mc_spp"] for e in kept])))
+    md = res.paths["markdown"].read_text()
+    assert f"Median over {len(kept)} of {len(eq)} scenes" in md and f"- test:no_hit: {no_hit['why']}" in md
+    eq_csv = {r["scene"]: r for r in _csv_rows(res.paths["equal_time_csv"])}
+    assert eq_csv["test:no_hit"]["left_out"] == "True" and eq_csv["test:no_hit"]["why"] == no_hit["why"]
+
+    # flag one more scene through the real analysis (a slope range that excludes its fitted MC slope):
+    # the headline moves to the median of the others, whatever that scene's figure
+    renders = {label: _scene_renders(cfg, label) for label in cfg.scenes}
+    victim = max(kept, key=lambda e: e["fitted_slope"])
+    lo, hi = min(e["fitted_slope"] for e in kept) - 1.0, victim["fitted_slope"] - 1e-9
+    eq2 = equal_time(res.rows, renders, "kpcn", victim["model_spp"], cfg.floor_factor, (lo, hi))
+    head2 = equal_time_headline(eq2)
+    left = {x["scene"]: x["why"] for x in head2["left_out"]}
+    assert "slope" in left[victim["scene"]] and victim["scene"] not in head2["scenes"]
+    rest = [e for e in eq2 if not e["left_out"]]
+    assert head2["scenes"] == [e["scene"] for e in rest]
+    if rest:
+        assert head2["time_ratio"] == pytest.approx(float(np.median([e["time_ratio"] for e in rest])))
+        # an absurd figure on a left-out scene does not move the headline
+        absurd = [{**e, "time_ratio": 1e12, "mc_spp": 1e12} if e["left_out"] else e for e in eq2]
+        assert equal_time_headline(absurd)["time_ratio"] == head2["time_ratio"]
+    else:
+        assert head2["time_ratio"] is None and head2["mc_spp"] is None
+
+
+def test_converged_input_table_has_one_row_per_method(report):
+    cfg, res = report
+    table = res.summary["converged_table"]
+    assert [t["method"] for t in table] == _methods()
+    for t in table:
+        assert t["scenes"] == len(cfg.scenes) and t["spp"] == cfg.converged_spp
+        assert 0 <= t["change_relmse"] <= t["change_relmse_max"]
+    conv = _csv_rows(res.paths["converged_csv"])
+    assert sorted((r["scene"], r["method"]) for r in conv) == sorted((s, m) for s in cfg.scenes for m in _methods())
+    md = res.paths["markdown"].read_text()
+    conv_md = md.split("## Converged input")[1].split("\n## ")[0]
+    for m in _methods():
+        assert f"\n| {m} | {len(cfg.scenes)} |" in conv_md
+    for label in cfg.scenes:
+        sr = _scene_renders(cfg, label)
+        conv_frame, ref, top = sr.converged, sr.reference, sr.inputs[max(cfg.spp)]
+        assert conv_frame.spp == cfg.converged_spp and conv_frame.shape == ref.shape
+        # an independent render: its own noise, neither the reference's nor the ladder's
+        if label != "test:no_hit":
+            assert not np.array_equal(conv_frame["color"], ref["color"])
+            assert relmse(conv_frame["color"], ref["color"]) < relmse(top["color"], ref["color"])
+        rows = [r for r in res.converged if r["scene"] == label]
+        for r in rows:
+            assert r["input_relmse"] == pytest.approx(relmse(conv_frame["color"].astype(np.float64),
+                                                             ref["color"].astype(np.float64)), rel=1e-6)
+            assert r["worse_than_input"] == (r["relmse"] > r["input_relmse"])
+        # a method that returns its input changes nothing, and is never worse than it
+        ident = Method("identity", lambda fr: fr["color"])
+        (row,) = evaluate_converged(sr, [ident], cfg.floor_factor)
+        assert row["change_relmse"] == 0 and row["change_psnr"] == math.inf and not row["worse_than_input"]
+    summary = json.loads(res.paths["summary"].read_text())  # infinite PSNRs are written as null, valid JSON
+    assert len(summary["converged"]) == len(res.converged)
+
+
+def test_frames_worse_than_their_input_are_all_listed(report):
+    cfg, res = report
+    mc = {(r["scene"], r["spp"]): r["relmse"] for r in res.rows if r["method"] == MC}
+    expect = {(r["scene"], r["spp"], r["method"]) for r in res.rows if r["method"] != MC and r["relmse"] > mc[(r["scene"], r["spp"])]}
+    expect |= {(r["scene"], r["spp"], r["method"]) for r in res.converged if r["relmse"] > r["input_relmse"]}
+    worse = res.summary["worse_than_input"]
+    assert {(w["scene"], w["spp"], w["method"]) for w in worse} == expect and len(worse) == len(expect)
+    assert res.summary["frames_checked"] == len(res.rows) - len(mc) + len(res.converged)
+    md = res.paths["markdown"].read_text().split("## Frames made worse than their input")[1].split("\n## ")[0]
+    if worse:
+        assert f"**{len(worse)} of {res.summary['frames_checked']} frames**" in md
+        assert sum(line.startswith("- ") for line in md.splitlines()) == len(worse)
+    else:
+        assert "None:" in md
+
+
+def test_methods_table_gives_time_and_multiply_adds(report):
+    cfg, res = report
+    table = {t["method"]: t for t in res.summary["methods_table"]}
+    assert list(table) == _methods()
+    for m, t in table.items():
+        timed = [r["denoise_s"] for r in res.rows + res.converged if r["method"] == m]
+        assert t["frames"] == len(timed) and t["denoise_s_mean"] == pytest.approx(float(np.mean(timed)))
+        assert t["macs_per_px"] > 0 and t["macs_source"]
+    md = res.paths["markdown"].read_text().split("## Methods")[1].split("\n## ")[0]
+    assert f"| kpcn | {table['kpcn']['macs_per_px'] / 1e3:.1f} k |" in md
+    if HAS_OIDN:
+        assert table["oidn"]["macs_per_px"] == OIDN_MACS_PER_PX
+        assert f"| oidn | ≈ {OIDN_MACS_PER_PX / 1e3:.1f} k |" in md
+
+
+@pytest.mark.skipif(not HAS_OIDN, reason="pyoidn not installed")
+def test_against_oidn_marks_each_spp(report):
+    cfg, res = report
+    means = {(m["method"], m["spp"]): m for m in res.means}
+    marks = res.summary["against_oidn"]
+    assert sorted((v["method"], v["spp"]) for v in marks) == sorted(("kpcn", s) for s in cfg.spp)
+    for v in marks:
+        k, o = means[("kpcn", v["spp"])], means[("oidn", v["spp"])]
+        assert v["beats_oidn"] == (k["relmse"] <= o["relmse"] and k["psnr"] >= o["psnr"] and k["ssim"] >= o["ssim"])
+    md = res.paths["markdown"].read_text().split("## Against OIDN")[1].split("\n## ")[0]
+    assert sum(line.startswith("| kpcn |") for line in md.splitlines()) == len(cfg.spp)
+
+
+def test_xml_scene_file_renders_through_the_report(report):
+    cfg, res = report
+    label = "file:material_test"
+    assert label in cfg.scenes
+    folders = list((cfg.folder / "renders" / "file_material_test").glob("24x24-*"))
+    assert len(folders) == 1
+    exrs = sorted(folders[0].glob("*.exr"))
+    assert len(exrs) == len(cfg.spp) + 2
+    for p in exrs:
+        fr = read_exr(p)
+        assert fr.meta["scene"] == label and fr.shape == (24, 24)
+        assert np.isfinite(fr["color"]).all() and fr["color"].mean() > 0
+    assert {r["spp"] for r in res.rows if r["scene"] == label} == set(cfg.spp)
+    # an unknown shipped name is refused before anything renders, naming the shipped files
+    with pytest.raises(ValueError, match="file:material_test"):
+        ReportConfig(scenes=["file:no_such_scene"]).validate()
+
+
+def test_default_settings():
+    cfg = ReportConfig()
+    cfg.validate()
+    assert len(cfg.scenes) >= 8 and tuple(cfg.resolution) == (256, 256)
+    assert cfg.spp == [2, 4, 8, 16, 32, 64, 128, 256]
+    assert max(cfg.spp) < cfg.converged_spp < cfg.ref_spp
+    assert sum(s.startswith("file:") for s in cfg.scenes) >= 3
+    assert all(int(s.split(":")[1]) >= 900000 for s in cfg.scenes if s.startswith("random:"))  # far from training
 
 
 # ----------------------------------------------------------------------------- pieces

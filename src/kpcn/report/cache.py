@@ -9,7 +9,9 @@ from typing import Any, Callable
 
 from ..io import Frame, read_exr, write_exr
 from ..render.record import update_hash
-from .config import INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
+from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
+
+_NAMED = ("test:", "random:", "file:")  #: scene names (not paths): test scenes, procedural seeds, shipped XML files
 
 
 def scene_slug(scene: Any) -> str:
@@ -17,7 +19,7 @@ def scene_slug(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict")).replace(":", "_").replace("/", "_")
     s = os.fspath(scene)
-    if s.startswith(("test:", "random:")):
+    if s.startswith(_NAMED):
         return s.replace(":", "_")
     p = Path(s).resolve()
     return f"{p.stem}_{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
@@ -28,18 +30,19 @@ def scene_label(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict"))
     s = os.fspath(scene)
-    return s if s.startswith(("test:", "random:")) else Path(s).stem
+    return s if s.startswith(_NAMED) else Path(s).stem
 
 
 @dataclass
 class SceneRenders:
-    """The renders of one scene: ``inputs[spp]`` and ``reference`` (Frames, layers ``(H, W, C)``)."""
+    """The renders of one scene: ``inputs[spp]``, ``reference`` and ``converged`` (Frames, layers ``(H, W, C)``)."""
 
     scene: Any
     label: str
     inputs: dict[int, Frame]
     reference: Frame
     rendered: list[str]  #: paths rendered in this run (the others came from the cache)
+    converged: Frame | None = None  #: the high-spp input (``cfg.converged_spp``, own seed), or None
 
 
 def _cached(path: Path, spp: int, resolution: tuple[int, int]) -> Frame | None:
@@ -63,8 +66,10 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
 
     ``test:``/``random:`` names are built into their scene dicts here, so the
     fingerprint covers the generated content (a change to :mod:`kpcn.scenes`
-    invalidates the cache); for an XML file it is the file's bytes (not the
-    meshes and textures it references: use ``--rerender`` after changing those).
+    invalidates the cache); ``file:<name>`` is the shipped XML file of that name
+    (:func:`kpcn.scenes.scene_file`). For an XML file the fingerprint is the
+    file's bytes (not the meshes and textures it references: use ``--rerender``
+    after changing those).
     """
     h = hashlib.sha1(repr(tuple(resolution)).encode())
     if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
@@ -77,16 +82,21 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
     if isinstance(scene, dict):
         update_hash(h, scene)
         return scene, h.hexdigest()[:12]
+    if str(scene).startswith("file:"):
+        from ..scenes import scene_file
+
+        scene = scene_file(str(scene))
     h.update(Path(scene).read_bytes())
     return scene, h.hexdigest()[:12]
 
 
 def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] = log.info) -> SceneRenders:
-    """Render (or load from the cache) the input ladder and the reference of one scene.
+    """Render (or load from the cache) the input ladder, the converged input and the reference of one scene.
 
-    Cache: ``<out>/<name>/renders/<scene>/<W>x<H>-<fingerprint>/input_<spp>spp_seed<seed>.exr``
-    and ``reference_<spp>spp_seed<seed>.exr``; a cached file is used when its
-    header's spp and its size match.
+    Cache: ``<out>/<name>/renders/<scene>/<W>x<H>-<fingerprint>/input_<spp>spp_seed<seed>.exr``,
+    ``converged_<spp>spp_seed<seed>.exr`` and ``reference_<spp>spp_seed<seed>.exr``; a cached
+    file is used when its header's spp and its size match. Inputs, the converged input and the
+    reference have independent noise (render roles ``2 + spp``, :data:`CONVERGED_ROLE`, 1).
     """
     from ..render import load_scene, render_frame
 
@@ -94,6 +104,9 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
     source, fingerprint = scene_source(scene, tuple(cfg.resolution))
     folder = cfg.folder / "renders" / scene_slug(scene) / f"{w}x{h}-{fingerprint}"
     jobs = [(s, folder / f"input_{s}spp_seed{cfg.seed}.exr", INPUT_ROLE_BASE + s) for s in sorted(set(cfg.spp))]
+    n_inputs = len(jobs)
+    if cfg.converged_spp:
+        jobs.append((cfg.converged_spp, folder / f"converged_{cfg.converged_spp}spp_seed{cfg.seed}.exr", CONVERGED_ROLE))
     jobs.append((cfg.ref_spp, folder / f"reference_{cfg.ref_spp}spp_seed{cfg.seed}.exr", 1))
     frames: dict[Path, Frame] = {}
     rendered: list[str] = []
@@ -112,5 +125,6 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
             rendered.append(str(path))
             progress(f"rendered {scene_label(scene)} {spp} spp in {fr.meta['renderTimeSeconds']:.2f} s")
         frames[path] = fr
-    inputs = {s: frames[p] for s, p, _ in jobs[:-1]}
-    return SceneRenders(scene, scene_label(scene), inputs, frames[jobs[-1][1]], rendered)
+    inputs = {s: frames[p] for s, p, _ in jobs[:n_inputs]}
+    converged = frames[jobs[n_inputs][1]] if cfg.converged_spp else None
+    return SceneRenders(scene, scene_label(scene), inputs, frames[jobs[-1][1]], rendered, converged)

@@ -7,6 +7,7 @@ import sys
 
 from ..config import ConfigError, add_config_args, config_from_args
 from . import __doc__ as _package_doc
+from ..scenes.files import list_scene_files
 from .config import DEFAULT_SCENES, ReportConfig
 from .run import run_report
 
@@ -14,10 +15,15 @@ from .run import run_report
 def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p = argparse.ArgumentParser(prog="python -m kpcn.report", description=_package_doc.split("\n\n")[0])
     add_config_args(p)
-    p.add_argument("--scenes", nargs="+", help=f"XML paths, test:<name>, random:<seed> (default: {' '.join(DEFAULT_SCENES)})")
-    p.add_argument("--spp", type=int, nargs="+", help="input spp ladder, each >= 2 (default: 2 4 8 16 32 64)")
-    p.add_argument("--ref-spp", type=int, help="reference spp (default: 1024)")
-    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 128 128")
+    p.add_argument("--scenes", nargs="+", help="XML paths, test:<name>, random:<seed>, file:<name> (shipped XML files: "
+                   f"{' '.join('file:' + n for n in list_scene_files())}) (default: {' '.join(DEFAULT_SCENES)})")
+    p.add_argument("--spp", type=int, nargs="+", help="input spp ladder, each >= 2 (default: 2 4 8 16 32 64 128 256)")
+    p.add_argument("--ref-spp", type=int, help="reference spp (default: 2048)")
+    p.add_argument("--converged-spp", type=int,
+                   help="spp of the converged input every method is also run on, 0 for none (default: 1024)")
+    p.add_argument("--floor-factor", type=float,
+                   help="flag relMSE below this many times the reference's own noise (default: 3)")
+    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 256 256")
     p.add_argument("--models", nargs="+", help="shipped model names, weights files or label=file (default: kpcn dpcn)")
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="allow .pt model files that only full unpickling can load (runs their code: trusted files only)")
@@ -31,11 +37,13 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("--equal-time-spp", type=int, help="model spp of the equal-time figure (default: 8)")
     p.add_argument("--contact-spp", type=int, help="spp of the contact sheet (default: 8)")
     p.add_argument("--rerender", action="store_true", help="render again even when cached EXRs exist")
-    p.add_argument("--quick", action="store_true", help="tiny run: 2 scenes at 24x24, spp 2 4, reference 64")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny run: 3 scenes at 24x24, spp 2 4 8, converged input 32, reference 128")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the Markdown summary")
     a = p.parse_args(argv)
     flags = {
-        "scenes": a.scenes, "spp": a.spp, "ref_spp": a.ref_spp, "resolution": a.resolution, "models": a.models,
+        "scenes": a.scenes, "spp": a.spp, "ref_spp": a.ref_spp, "converged_spp": a.converged_spp,
+        "floor_factor": a.floor_factor, "resolution": a.resolution, "models": a.models,
         "out": a.out, "name": a.name, "seed": a.seed, "device": a.device, "tile": a.tile, "repeats": a.repeats,
         "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
         "oidn": False if a.no_oidn else None, "rerender": True if a.rerender else None,
@@ -53,15 +61,21 @@ def main(argv=None) -> int:
         return 2
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(name)s: %(message)s")
     logging.getLogger("kpcn.render").setLevel(logging.WARNING)  # its per-render override notes
-    from ..render import RendererUnavailable
+    from ..render import RendererUnavailable, SceneError
 
     try:
+        cfg.validate()
+    except ValueError as exc:  # a setting it refuses: an unknown file: scene, spp < 2, ...
+        print(f"python -m kpcn.report: {exc}", file=sys.stderr)
+        return 2
+    try:
         result = run_report(cfg)
-    except RendererUnavailable as exc:
+    except (RendererUnavailable, SceneError) as exc:
         print(f"error: {exc}")
         return 2
     md = result.markdown
-    # stdout: the mean table and the equal-time figure (the per-scene table is in the file)
+    # stdout: everything up to the per-scene table (equal time, means, against OIDN, methods, converged
+    # input, frames made worse); the per-scene table is in the file
     print(md.split("\n## Per scene")[0].rstrip())
     print(f"\nwrote {', '.join(str(p) for p in result.paths.values())}")
     left_out = [n for n in result.summary["notes"] if n.startswith("model ")]

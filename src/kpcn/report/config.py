@@ -11,24 +11,39 @@ log = logging.getLogger("kpcn.report")  #: one logger for the whole package (its
 
 METRICS = ("relmse", "smape", "psnr", "ssim")
 TIMES = ("render_s", "denoise_s", "total_s")
-CSV_FIELDS = ("scene", "spp", "method", *METRICS, *TIMES, "width", "height", "ref_spp")
+#: ``ref_floor``: relMSE the reference's own noise adds (:func:`~kpcn.report.analysis.reference_floor`);
+#: ``ref_limited``: the row's relMSE is below ``floor_factor`` times it (not resolved by this reference)
+CSV_FIELDS = ("scene", "spp", "method", *METRICS, *TIMES, "width", "height", "ref_spp", "ref_floor", "ref_limited")
 MC = "mc"  #: method name of the raw Monte Carlo rows
-DEFAULT_SCENES = ("random:900001", "random:900002", "random:900003", "test:glossy", "test:glass")
+OIDN = "oidn"  #: method name of Intel Open Image Denoise
+#: unseen scenes: procedural seeds far from the training data's (0 to about 100), named test scenes, and
+#: the XML scene files shipped in kpcn/scenes/files/ (real Mitsuba files, not from the generator)
+DEFAULT_SCENES = ("random:900001", "random:900002", "random:900003", "test:glossy", "test:glass", "test:textured",
+                  "file:cbox_glossy", "file:material_test", "file:sun_yard", "file:lamp_room")
 INPUT_ROLE_BASE = 2  #: input at s spp renders with role 2 + s (as kpcn.render's data sets); reference role 1
+CONVERGED_ROLE = 3  #: role of the converged input (2 + 1: no input has 1 spp), independent of inputs and reference
 WARMUP_ROLE = 10_000_000  #: role of the untimed warm-up render (its noise is never used)
 #: pause between a scene's renders and its timed denoising. Mitsuba's worker threads keep
 #: spinning briefly after a render; a torch denoiser started at once ran 20x slower (2 cores).
 SETTLE_SECONDS = 0.5
+#: OIDN's multiply-adds per pixel (quality "high", the report's setting), counted from its network's
+#: layer list (docs/measured.md); not measured by the report
+OIDN_MACS_PER_PX = 312e3
 
 
 @dataclass
 class ReportConfig:
-    """What to render and compare. ``resolution`` is ``(width, height)``."""
+    """What to render and compare. ``resolution`` is ``(width, height)``.
+
+    The defaults (10 scenes at 256x256, spp 2 … 256, 1024-spp converged inputs,
+    2048-spp references) take about 80 minutes on a 2-core CPU (docs/measured.md).
+    """
 
     scenes: list[Any] = field(default_factory=lambda: list(DEFAULT_SCENES))
-    spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32, 64])
-    ref_spp: int = 1024
-    resolution: tuple[int, int] = (128, 128)
+    spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32, 64, 128, 256])
+    ref_spp: int = 2048
+    converged_spp: int = 1024  #: spp of the converged input every method is also run on (0: none)
+    resolution: tuple[int, int] = (256, 256)
     models: list[str] = field(default_factory=lambda: ["kpcn", "dpcn"])
     oidn: bool = True  #: include OIDN when pyoidn imports
     out: str = "results/report"
@@ -43,10 +58,16 @@ class ReportConfig:
     rerender: bool = False
     max_depth: int = 8
     trust_checkpoint: bool = False  #: allow .pt model files that need full unpickling (runs their code)
+    #: a relMSE below floor_factor x the reference's own noise (relMSE) is flagged as not resolved
+    floor_factor: float = 3.0
+    #: the fitted slope of log relMSE against log spp of raw MC must lie in this range (theory: -1) for
+    #: a scene's equal-time figure to count in the headline median
+    slope_range: tuple[float, float] = (-1.5, -0.5)
 
-    #: the ``--quick`` preset: two 24x24 scenes (chosen for low firefly noise), 2 and 4 spp, 64-spp reference
-    QUICK = {"scenes": ["random:900003", "test:textured"], "spp": [2, 4], "ref_spp": 64, "resolution": [24, 24],
-             "name": "quick"}
+    #: the ``--quick`` preset: three 24x24 scenes (one shipped XML file), spp 2 4 8, 32-spp converged
+    #: input, 128-spp reference
+    QUICK = {"scenes": ["random:900003", "test:textured", "file:material_test"], "spp": [2, 4, 8], "ref_spp": 128,
+             "converged_spp": 32, "resolution": [24, 24], "name": "quick"}
 
     @classmethod
     def quick(cls, **overrides) -> "ReportConfig":
@@ -60,10 +81,23 @@ class ReportConfig:
             raise ValueError(f"every spp must be >= 2 (variances need two samples), got {self.spp}")
         if self.ref_spp < 2:
             raise ValueError(f"ref_spp must be >= 2, got {self.ref_spp}")
+        if self.converged_spp and self.converged_spp < 2:
+            raise ValueError(f"converged_spp must be 0 (none) or >= 2, got {self.converged_spp}")
         if self.ref_spp <= max(self.spp):
             log.warning("reference spp %d is not above the largest input spp %d", self.ref_spp, max(self.spp))
+        if self.converged_spp and self.converged_spp >= self.ref_spp:
+            log.warning("converged input spp %d is not below the reference spp %d", self.converged_spp, self.ref_spp)
         if len(self.resolution) != 2 or min(self.resolution) < 8:
             raise ValueError(f"resolution must be (width, height), each >= 8, got {self.resolution}")
+        if not self.floor_factor > 0:
+            raise ValueError(f"floor_factor must be > 0, got {self.floor_factor}")
+        if len(self.slope_range) != 2 or not self.slope_range[0] < self.slope_range[1] < 0:
+            raise ValueError(f"slope_range must be (low, high) with low < high < 0, got {self.slope_range}")
+        for s in self.scenes:
+            if isinstance(s, str) and s.startswith("file:"):
+                from ..scenes import scene_file
+
+                scene_file(s)  # ValueError naming the shipped files
 
     @property
     def folder(self) -> Path:

@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from ..io import Frame
-from .config import ReportConfig, log
+from .config import OIDN, OIDN_MACS_PER_PX, ReportConfig, log
 
 
 @dataclass
@@ -24,7 +24,8 @@ class Method:
     description: str = ""
     repeats: int = 1
     warmed_up: bool = False
-    macs_per_px: float | None = None  #: multiply-adds per pixel (kpcn models; None where unknown)
+    macs_per_px: float | None = None  #: multiply-adds per pixel (None where unknown)
+    macs_source: str = ""  #: where ``macs_per_px`` comes from
 
     def __call__(self, frame: Frame) -> tuple[np.ndarray, float]:
         """Denoise ``frame``; returns the ``(H, W, 3)`` image and the seconds of the call.
@@ -66,7 +67,7 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
         return denoise(frame, model=model, tile=cfg.tile, device=cfg.device)
 
     return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats,
-                  macs_per_px=macs_per_pixel(model))
+                  macs_per_px=macs_per_pixel(model), macs_source="counted from the model (kpcn.models.macs_per_pixel)")
 
 
 def oidn_method(repeats: int = 1) -> Method:
@@ -76,7 +77,9 @@ def oidn_method(repeats: int = 1) -> Method:
     def fn(frame: Frame) -> np.ndarray:
         return oidn_denoise(frame["color"], frame["albedo"], frame["normal"])
 
-    return Method("oidn", fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), hdr, albedo + normal", repeats)
+    return Method(OIDN, fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), quality high, hdr, albedo + normal",
+                  repeats, macs_per_px=OIDN_MACS_PER_PX,
+                  macs_source="approximate: OIDN 'high' counted from its network's layer list (docs/measured.md)")
 
 
 def build_methods(cfg: ReportConfig) -> tuple[list[Method], list[str]]:

@@ -48,8 +48,12 @@ def _log_axes(ax) -> None:
     ax.tick_params(which="minor", labelsize=7)
 
 
-def plot_error_vs_time(path: Path, rows: Sequence[dict], means: Sequence[dict]) -> None:
-    """Log-log relMSE against total seconds; one panel per scene plus the mean; one line per method."""
+def plot_error_vs_time(path: Path, rows: Sequence[dict], means: Sequence[dict], floor_factor: float | None = None) -> None:
+    """Log-log relMSE against total seconds; one panel per scene plus the mean; one line per method.
+
+    With ``floor_factor``, a dashed line in each scene's panel at that multiple of the reference's noise
+    (rows' ``ref_floor``): errors below it are not resolved by the reference.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -73,6 +77,10 @@ def plot_error_vs_time(path: Path, rows: Sequence[dict], means: Sequence[dict]) 
             if m == MC:
                 for r, xi, yi in zip(pts, x, y):
                     ax.annotate(str(r["spp"]), (xi, yi), textcoords="offset points", xytext=(3, 3), fontsize=7)
+        floors = {r.get("ref_floor") for r in rs if r.get("ref_floor")} if title in scenes else set()
+        if floor_factor and len(floors) == 1:
+            ax.axhline(floor_factor * floors.pop(), color="gray", ls="--", lw=0.9,
+                       label=f"{floor_factor:g}× reference noise")
         _log_axes(ax)
         ax.set_title(title, fontsize=10)
         ax.grid(True, which="both", alpha=0.3)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import time
@@ -13,12 +14,19 @@ import numpy as np
 
 from ..config import save_config
 from ..io import atomic_write
-from .analysis import equal_time, evaluate_scene, geomean, mean_table
+from .analysis import equal_time, equal_time_headline, evaluate_scene, mean_table
 from .cache import render_scene, scene_label
-from .config import MC, METRICS, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
+from .checks import (CONVERGED_FIELDS, against_oidn, converged_table, evaluate_converged, method_table,
+                     worse_than_input)
+from .config import MC, METRICS, OIDN, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
 from .methods import Method, build_methods
 from .plots import contact_sheet, plot_error_vs_time
 from .tables import markdown_report, write_csv
+
+#: columns of ``equal_time.csv``
+EQUAL_TIME_FIELDS = ("scene", "model", "model_spp", "model_relmse", "model_seconds", "mc_spp", "extrapolated",
+                     "beyond_reference", "fitted_slope", "slope", "mc_points_fitted", "mc_seconds", "time_ratio",
+                     "reference_floor_relmse", "left_out", "why")
 
 
 def _json_default(o):
@@ -27,6 +35,17 @@ def _json_default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _finite(o):
+    """``o`` with every non-finite float (an infinite PSNR of identical images) replaced by None, for JSON."""
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -44,7 +63,8 @@ def _machine() -> str:
 
 @dataclass
 class ReportResult:
-    """What :func:`run_report` produced: CSV rows, mean rows, equal-time rows, summary.json content, Markdown, file paths."""
+    """What :func:`run_report` produced: CSV rows, mean rows, equal-time rows, summary.json content, Markdown,
+    file paths, and the converged-input rows (one per scene and method)."""
 
     rows: list[dict]
     means: list[dict]
@@ -53,11 +73,15 @@ class ReportResult:
     markdown: str
     paths: dict[str, Path]
     rendered: list[str]  #: EXRs rendered in this run (empty when everything came from the cache)
+    converged: list[dict]
 
 
 def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Method], means: Sequence[dict],
-                  eq: Sequence[dict], notes: list[str], machine: str, contact_spp: int, eq_spp: int) -> dict:
-    """The content of ``summary.json``: config, mean metrics per method and spp, equal-time figures."""
+                  eq: Sequence[dict], notes: list[str], machine: str, contact_spp: int, eq_spp: int,
+                  rows: Sequence[dict] = (), converged: Sequence[dict] = ()) -> dict:
+    """The content of ``summary.json``: config, mean metrics per method and spp, equal-time figures and their
+    median headline, the comparison with OIDN, the methods' costs, the converged-input table and the
+    frames made worse than their input."""
     scene_names = [scene_label(s) if isinstance(s, dict) else os.fspath(s) for s in cfg.scenes]
     return {
         "config": {**asdict(cfg), "scenes": scene_names, "resolution": list(cfg.resolution),
@@ -66,30 +90,41 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
         "methods": [MC] + [m.name for m in methods],
         "method_descriptions": {m.name: m.description for m in methods},
         "method_macs_per_px": {m.name: m.macs_per_px for m in methods if m.macs_per_px is not None},
+        "methods_table": method_table(methods, rows, converged),
         "machine": machine,
         "notes": notes,
         "mean": {m: {str(r["spp"]): {k: r[k] for k in METRICS + TIMES} for r in means if r["method"] == m}
                  for m in dict.fromkeys(r["method"] for r in means)},
+        "mean_relmse_median": {m: {str(r["spp"]): r["relmse_median"] for r in means if r["method"] == m}
+                               for m in dict.fromkeys(r["method"] for r in means)},
+        "ref_limited_rows": sum(bool(r.get("ref_limited")) for r in rows),
         "equal_time": list(eq),
-        "equal_time_geomean": ({"model": eq[0]["model"], "model_spp": eq_spp,
-                                "mc_spp": geomean([e["mc_spp"] for e in eq]),
-                                "time_ratio": geomean([e["time_ratio"] for e in eq])} if eq else None),
+        "equal_time_headline": equal_time_headline(eq),
+        "against_oidn": against_oidn(means, rows),
+        "converged": list(converged),
+        "converged_table": converged_table(converged),
+        "worse_than_input": worse_than_input(rows, converged),
+        "frames_checked": sum(r["method"] != MC for r in rows) + len(converged),
     }
 
 
 def write_outputs(folder: Path, rows, means, images, summary: dict, markdown: str, contact_spp: int, crop: int,
                   cfg: ReportConfig | None = None) -> dict[str, Path]:
-    """Write the CSV, Markdown, plots, summary and resolved config (each atomically); returns their paths."""
-    paths = {"csv": folder / "results.csv", "markdown": folder / "report.md", "plot": folder / "error_vs_time.png",
-             "contact_sheet": folder / "contact_sheet.png", "summary": folder / "summary.json"}
+    """Write the CSVs, Markdown, plots, summary and resolved config (each atomically); returns their paths."""
+    paths = {"csv": folder / "results.csv", "equal_time_csv": folder / "equal_time.csv",
+             "converged_csv": folder / "converged.csv", "markdown": folder / "report.md",
+             "plot": folder / "error_vs_time.png", "contact_sheet": folder / "contact_sheet.png",
+             "summary": folder / "summary.json"}
     if cfg is not None and all(isinstance(s, str) for s in cfg.scenes):  # in-memory dict scenes are not YAML
         paths["config"] = folder / "config.yaml"
         save_config(cfg, paths["config"])
     write_csv(paths["csv"], rows)
+    write_csv(paths["equal_time_csv"], summary.get("equal_time", []), EQUAL_TIME_FIELDS)
+    write_csv(paths["converged_csv"], summary.get("converged", []), CONVERGED_FIELDS)
     _write_text(paths["markdown"], markdown)
-    plot_error_vs_time(paths["plot"], rows, means)
+    plot_error_vs_time(paths["plot"], rows, means, floor_factor=cfg.floor_factor if cfg else None)
     contact_sheet(paths["contact_sheet"], images, rows, contact_spp, crop)
-    _write_text(paths["summary"], json.dumps(summary, indent=1, default=_json_default))
+    _write_text(paths["summary"], json.dumps(_finite(summary), indent=1, default=_json_default))
     return paths
 
 
@@ -107,7 +142,7 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
     if eq_spp != cfg.equal_time_spp:
         notes.append(f"equal-time figure at {eq_spp} spp ({cfg.equal_time_spp} is not on the ladder)")
 
-    rows, renders, images, rendered = [], {}, {}, []
+    rows, renders, images, rendered, converged = [], {}, {}, [], []
     for scene in cfg.scenes:
         sr = render_scene(cfg, scene, say)
         if sr.label in renders:  # two XML files with the same name
@@ -116,17 +151,20 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         rendered += sr.rendered
         if sr.rendered:
             time.sleep(SETTLE_SECONDS)
-        r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp)
+        r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp, floor_factor=cfg.floor_factor)
         rows += r
+        converged += evaluate_converged(sr, methods, cfg.floor_factor)
         images[sr.label] = imgs
         say(f"evaluated {sr.label}")
 
     means = mean_table(rows)
-    model_names = [m.name for m in methods if m.name != "oidn"]
-    eq = equal_time(rows, renders, model_names[0], eq_spp) if model_names else []
+    model_names = [m.name for m in methods if m.name != OIDN]
+    eq = (equal_time(rows, renders, model_names[0], eq_spp, cfg.floor_factor, tuple(cfg.slope_range))
+          if model_names else [])
     if not model_names:
         notes.append("no kpcn model was evaluated: no equal-time figure")
-    summary = build_summary(cfg, list(renders), methods, means, eq, notes, machine, contact_spp, eq_spp)
+    summary = build_summary(cfg, list(renders), methods, means, eq, notes, machine, contact_spp, eq_spp,
+                            rows, converged)
     md = markdown_report(rows, means, eq, summary)
     paths = write_outputs(cfg.folder, rows, means, images, summary, md, contact_spp, cfg.crop, cfg)
-    return ReportResult(rows, means, eq, summary, md, paths, rendered)
+    return ReportResult(rows, means, eq, summary, md, paths, rendered, converged)

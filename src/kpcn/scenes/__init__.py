@@ -20,6 +20,8 @@ Public API
 ``test_scene_with_meta(name, resolution=(32, 32)) -> (dict, dict)``
 ``list_test_scenes() -> list[str]``
 ``copy_scene_dict(scene) -> dict``
+``list_scene_files() -> list[str]``, ``scene_file(name) -> Path``: the Mitsuba XML
+scene files shipped for evaluation (``files/*.xml``, see :mod:`kpcn.scenes.files`)
 
 ``resolution`` is ``(width, height)`` like Mitsuba's film.
 
@@ -61,13 +63,14 @@ Modules
 black-body tints), ``materials`` (procedural textures, BSDF dicts),
 ``sky`` (procedural sky maps), ``builder`` (the scene-dict builder),
 ``objects`` (object and clutter placement, camera framing), ``lights``
-(light intensities and placement), ``layouts`` (random scenes) and
-``named`` (named test scenes).
+(light intensities and placement), ``layouts`` (random scenes),
+``named`` (named test scenes) and ``files`` (the shipped XML scene files).
 """
 
 from __future__ import annotations
 
 from .base import _mi, copy_scene_dict  # noqa: F401  (_mi: used by tests to select the variant)
+from .files import list_scene_files, scene_file
 from .layouts import describe_scene, random_scene, random_scene_with_meta
 from .lights import LIGHT_CLASSES
 from .materials import MATERIAL_CLASSES
@@ -81,6 +84,8 @@ __all__ = [
     "test_scene_with_meta",
     "list_test_scenes",
     "copy_scene_dict",
+    "list_scene_files",
+    "scene_file",
     "MATERIAL_CLASSES",
     "LIGHT_CLASSES",
 ]

@@ -1,0 +1,144 @@
+"""Checks a denoiser must pass, beyond the error curves.
+
+* :func:`evaluate_converged`: every method on a converged (high-spp) input; how
+  much it changes it (relMSE and PSNR of the output against that input) and its
+  error against the reference next to the input's own. A denoiser must leave a
+  converged input nearly as it is.
+* :func:`worse_than_input`: every frame (ladder and converged) where a method's
+  output is further from the reference than its noisy input was.
+* :func:`against_oidn`: per model and spp, whether its mean relMSE, PSNR and SSIM
+  all beat OIDN's.
+* :func:`method_table`: each method's cost: denoise seconds and multiply-adds per pixel.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ..metrics import all_metrics, psnr, relmse
+from .analysis import is_ref_limited, reference_floor
+from .cache import SceneRenders
+from .config import MC, OIDN
+from .methods import Method
+
+#: per-scene fields of the converged-input table (``converged.csv``)
+CONVERGED_FIELDS = ("scene", "method", "spp", "change_relmse", "change_psnr", "relmse", "psnr", "ssim",
+                    "input_relmse", "input_psnr", "input_ssim", "worse_than_input", "ref_floor", "ref_limited",
+                    "denoise_s")
+
+
+def evaluate_converged(sr: SceneRenders, methods: Sequence[Method], floor_factor: float = 3.0) -> list[dict]:
+    """One row per method for the scene's converged input (none without one).
+
+    ``change_relmse`` / ``change_psnr``: the output against the converged input
+    itself (0 / infinite for a method that returns its input); ``relmse``,
+    ``psnr``, ``ssim``: the output against the reference; ``input_*``: the
+    converged input against the reference; ``ref_limited``: the input's relMSE is
+    below ``floor_factor`` x the reference's noise (then the reference cannot
+    tell whether the method improved or degraded it: read ``change_*``).
+    """
+    if sr.converged is None:
+        return []
+    frame, ref = sr.converged, sr.reference["color"]
+    x = frame["color"]
+    with np.errstate(divide="ignore"):  # PSNR of identical images is infinite
+        inp = all_metrics(x, ref)
+    floor = reference_floor(sr.reference)
+    rows = []
+    for m in methods:
+        img, secs = m(frame)
+        with np.errstate(divide="ignore"):
+            met, change_psnr = all_metrics(img, ref), psnr(img, x)
+        rows.append({
+            "scene": sr.label, "method": m.name, "spp": frame.spp,
+            "change_relmse": relmse(img.astype(np.float64), x.astype(np.float64)),
+            "change_psnr": change_psnr, **{k: met[k] for k in ("relmse", "psnr", "ssim")},
+            "input_relmse": inp["relmse"], "input_psnr": inp["psnr"], "input_ssim": inp["ssim"],
+            "worse_than_input": met["relmse"] > inp["relmse"], "ref_floor": floor,
+            "ref_limited": is_ref_limited(inp["relmse"], floor, floor_factor), "denoise_s": secs,
+        })
+    return rows
+
+
+def converged_table(rows: Sequence[dict]) -> list[dict]:
+    """One row per method: over scenes, the mean and largest change of the converged input
+    (relMSE against the input), the median PSNR against the input, the mean relMSE against the
+    reference of the output and of the input, and on how many scenes the output was further
+    from the reference than the input."""
+    out = []
+    for m in dict.fromkeys(r["method"] for r in rows):
+        rs = [r for r in rows if r["method"] == m]
+        out.append({
+            "method": m, "spp": rs[0]["spp"], "scenes": len(rs),
+            "change_relmse": float(np.mean([r["change_relmse"] for r in rs])),
+            "change_relmse_max": float(max(r["change_relmse"] for r in rs)),
+            "change_psnr": float(np.median([r["change_psnr"] for r in rs])),
+            "relmse": float(np.mean([r["relmse"] for r in rs])),
+            "input_relmse": float(np.mean([r["input_relmse"] for r in rs])),
+            "psnr": float(np.mean([r["psnr"] for r in rs])),
+            "input_psnr": float(np.mean([r["input_psnr"] for r in rs])),
+            "worse_than_input": sum(bool(r["worse_than_input"]) for r in rs),
+        })
+    return out
+
+
+def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = ()) -> list[dict]:
+    """Frames where a method's relMSE against the reference is above its noisy input's.
+
+    ``rows``: the ladder rows (the input's relMSE is the ``mc`` row of the same
+    scene and spp); ``converged``: :func:`evaluate_converged` rows. Each item:
+    ``scene, spp, method, relmse, input_relmse, ratio, converged, ref_limited``.
+    """
+    inputs = {(r["scene"], r["spp"]): r for r in rows if r["method"] == MC}
+    out = []
+    for r in rows:
+        inp = inputs.get((r["scene"], r["spp"]))
+        if r["method"] != MC and inp is not None and r["relmse"] > inp["relmse"]:
+            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
+                        "input_relmse": inp["relmse"], "ratio": r["relmse"] / max(inp["relmse"], 1e-30),
+                        "converged": False, "ref_limited": bool(inp.get("ref_limited"))})
+    for r in converged:
+        if r["worse_than_input"]:
+            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
+                        "input_relmse": r["input_relmse"], "ratio": r["relmse"] / max(r["input_relmse"], 1e-30),
+                        "converged": True, "ref_limited": bool(r["ref_limited"])})
+    return out
+
+
+def against_oidn(means: Sequence[dict], rows: Sequence[dict] = ()) -> list[dict]:
+    """Per model (not MC, not OIDN) and spp: does its mean relMSE <= OIDN's, mean PSNR >= and mean SSIM >=?
+
+    ``beats_oidn`` is True when all three hold. With ``rows``, also
+    ``scenes_won_relmse``: on how many scenes its relMSE <= OIDN's. Empty without OIDN rows.
+    """
+    oidn = {r["spp"]: r for r in means if r["method"] == OIDN}
+    per_scene = {(r["scene"], r["spp"], r["method"]): r["relmse"] for r in rows}
+    out = []
+    for r in means:
+        o = oidn.get(r["spp"])
+        if r["method"] in (MC, OIDN) or o is None:
+            continue
+        ok = {"relmse_ok": r["relmse"] <= o["relmse"], "psnr_ok": r["psnr"] >= o["psnr"], "ssim_ok": r["ssim"] >= o["ssim"]}
+        scenes = sorted({s for s, p, m in per_scene if p == r["spp"] and m == r["method"] and (s, p, OIDN) in per_scene})
+        won = sum(per_scene[(s, r["spp"], r["method"])] <= per_scene[(s, r["spp"], OIDN)] for s in scenes)
+        out.append({"method": r["method"], "spp": r["spp"], **ok, "beats_oidn": all(ok.values()),
+                    "relmse": r["relmse"], "oidn_relmse": o["relmse"], "psnr": r["psnr"], "oidn_psnr": o["psnr"],
+                    "ssim": r["ssim"], "oidn_ssim": o["ssim"], "scenes_won_relmse": won, "scenes": len(scenes)})
+    return out
+
+
+def method_table(methods: Sequence[Method], rows: Sequence[dict], converged: Sequence[dict] = ()) -> list[dict]:
+    """One row per method: multiply-adds per pixel (and where the figure comes from), denoise seconds per
+    frame (mean and median over every timed call) and megapixels per second at the report's size."""
+    out = []
+    for m in methods:
+        rs = [r for r in rows if r["method"] == m.name] + [r for r in converged if r["method"] == m.name]
+        secs = [r["denoise_s"] for r in rs]
+        px = [r["width"] * r["height"] for r in rows if r["method"] == m.name][:1]
+        mean_s = float(np.mean(secs)) if secs else None
+        out.append({"method": m.name, "macs_per_px": m.macs_per_px, "macs_source": m.macs_source,
+                    "denoise_s_mean": mean_s, "denoise_s_median": float(np.median(secs)) if secs else None,
+                    "frames": len(secs), "mpix_per_s": (px[0] / mean_s / 1e6) if px and mean_s else None,
+                    "description": m.description})
+    return out
