@@ -11,7 +11,7 @@ to [0, 1] (Bako et al. 2017 §5; CN113947547A claim 4).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -32,6 +32,9 @@ class FramePair:
     spp: int
     input_path: Path
     reference_path: Path
+    #: the manifest's render records of the input and the reference (None: not recorded); part of
+    #: the patch store's fingerprint of the frame (:mod:`kpcn.store`)
+    records: dict | None = field(default=None, compare=False, repr=False)
 
 
 def read_manifest(root: str | Path, spp: Sequence[int] | None = None) -> list[FramePair]:
@@ -64,9 +67,11 @@ def read_manifest(root: str | Path, spp: Sequence[int] | None = None) -> list[Fr
                                f"{' '.join(map(str, status.settings['spp']))} spp")
     pairs = []
     for sc in status.manifest["scenes"]:
+        frames = sc.get("frames") or {}
         for s, rel in sc["inputs"].items():
             if spp is None or int(s) in spp:
-                pairs.append(FramePair(sc["name"], int(s), root / rel, root / sc["reference"]))
+                records = {"input": frames.get(rel), "reference": frames.get(sc["reference"])} if frames else None
+                pairs.append(FramePair(sc["name"], int(s), root / rel, root / sc["reference"], records))
     return pairs
 
 
@@ -171,9 +176,17 @@ def sample_patches(
 class PatchDataset(Dataset):
     """Training patches over a rendered data set.
 
-    Frames are loaded once and kept as the tensors ``spec`` builds;
+    Without ``store`` the frames are loaded once and kept in memory as the
+    float32 tensors ``spec`` builds. With ``store`` (a folder, see
+    :mod:`kpcn.store`) each frame is preprocessed once into that folder (only
+    frames missing there or stale are) and patches are cropped from memory
+    maps, opened lazily in each process (DataLoader workers open their own):
+    memory does not grow with the data set. Both give the same patch positions
+    for the same ``(seed, epoch)`` and the same items, to the store's float16
+    rounding (:data:`kpcn.store.HALF_RTOL`) on the channels it keeps in float16.
+
     :meth:`resample` draws a new set of patch positions (call it at each epoch).
-    Items are dicts of ``(C, size, size)`` tensors: one per branch of the spec
+    Items are dicts of float32 ``(C, size, size)`` tensors: one per branch of the spec
     (``diffuse``, ``specular`` for the split specs), ``albedo``, ``y_<branch>``,
     ``y_color`` and ``noisy_color``.
     """
@@ -186,6 +199,8 @@ class PatchDataset(Dataset):
         sampling: str = "importance",
         seed: int = 0,
         spec: InputSpec | str = DEFAULT_SPEC,
+        store: str | Path | None = None,
+        progress: bool = False,
     ):
         if sampling not in ("importance", "uniform"):
             raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
@@ -196,14 +211,22 @@ class PatchDataset(Dataset):
         self.sampling = sampling
         self.frames, self.importance = [], []
         self.spec = get_input_spec(spec)
-        for p in self.pairs:
-            noisy, ref = read_pair(p, self.spec)
-            self.frames.append({k: v[0] for k, v in pair_tensors(noisy, ref, self.spec).items()})
-            imp = None
-            if sampling == "importance":
-                noisy.require(("colorVariance", "normalVariance"))
-                imp = importance_map(noisy["colorVariance"], noisy["normalVariance"])
-            self.importance.append(imp)
+        self.store = None
+        if store is not None:
+            from .store import open_store
+
+            self.store = open_store(self.pairs, self.spec, store, importance=sampling == "importance", progress=progress)
+            self.sizes = list(self.store.sizes)
+        else:
+            for p in self.pairs:
+                noisy, ref = read_pair(p, self.spec)
+                self.frames.append({k: v[0] for k, v in pair_tensors(noisy, ref, self.spec).items()})
+                imp = None
+                if sampling == "importance":
+                    noisy.require(("colorVariance", "normalVariance"))
+                    imp = importance_map(noisy["colorVariance"], noisy["normalVariance"])
+                self.importance.append(imp)
+            self.sizes = [tuple(fr["albedo"].shape[-2:]) for fr in self.frames]
         self.patches_per_frame = patches_per_frame
         self.seed = seed
         self.index: np.ndarray = np.zeros((0, 3), dtype=np.int64)
@@ -212,12 +235,25 @@ class PatchDataset(Dataset):
     def resample(self, epoch: int) -> None:
         rng = np.random.default_rng([self.seed, epoch])
         rows = []
-        for i, fr in enumerate(self.frames):
-            h, w = fr["albedo"].shape[-2:]
+        for i, (h, w) in enumerate(self.sizes):
             n = self.patches_per_frame or patch_count(h, w)
-            corners = sample_patches(h, w, n, self.patch_size, self.importance[i], rng)
+            imp = None
+            if self.sampling == "importance":
+                imp = self.store.importance(i) if self.store is not None else self.importance[i]
+            corners = sample_patches(h, w, n, self.patch_size, imp, rng)
             rows.append(np.concatenate([np.full((n, 1), i), corners], axis=1))
         self.index = np.concatenate(rows).astype(np.int64)
+
+    def __getstate__(self) -> dict:
+        # for DataLoader workers started by spawn: the spec (it holds functions) travels by its registered
+        # name, the store without its memory maps (kpcn.store.StoreFrames reopens them in the worker)
+        state = dict(self.__dict__)
+        state["spec"] = self.spec.name
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.spec = get_input_spec(state["spec"])
 
     def __len__(self) -> int:
         return len(self.index)
@@ -225,6 +261,8 @@ class PatchDataset(Dataset):
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
         f, y, x = (int(v) for v in self.index[idx])
         s = self.patch_size
+        if self.store is not None:
+            return self.store.crop(f, y, x, s)
         return {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
 
 

@@ -88,7 +88,7 @@ from .runs import (
     step_checkpoints,
 )
 from .train_config import RunConfig
-from .train_data import split_pairs
+from .train_data import split_pairs, store_dir
 from .train_steps import (
     _make_optimizer,
     _set_seed,
@@ -146,8 +146,10 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         train_pairs, val_pairs = split_pairs(cfg, progress=progress and d.main)
         if not train_pairs:
             raise ConfigError(f"data: no training frames in {cfg.data.root} (spp {cfg.data.spp or 'all'})")
+        # the patch store (data.store): every rank prepares it, one at a time (a lock), so rank 0 builds
+        # what is missing or stale and the others find it done
         ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling,
-                          cfg.train.seed, spec=spec)
+                          cfg.train.seed, spec=spec, store=store_dir(cfg, spec), progress=progress and d.main)
         per_rank = max(1, cfg.train.batch_size // d.world)
         if len(ds) // d.world < per_rank:
             raise ConfigError(f"train.batch_size: {cfg.train.batch_size} is more than the {len(ds)} training "

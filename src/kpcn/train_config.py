@@ -48,6 +48,12 @@ class DataConfig:
     patch_size: int = 65
     patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
     sampling: str = "importance"
+    #: the patch store (kpcn.store): "auto" = <root>/.store/<spec>, a folder (<folder>/<spec> is used),
+    #: or "none" to keep every frame in memory as float32 tensors (no preprocessing on disk)
+    store: str = "auto"
+    #: DataLoader worker processes that crop the patches (0: the training process itself); None: 2 when
+    #: training on CUDA, 0 on the CPU (there workers measured slower: `python -m kpcn.bench data`)
+    workers: int | None = None
     # the built-in default data set, rendered when `root` has no manifest and `render_if_missing`
     render_if_missing: bool = True
     render_scenes: int = 24
@@ -61,8 +67,10 @@ class DataConfig:
             raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
         for key in ("patch_size", "patches_per_frame", "render_scenes"):
             _at_least("data", self, key, 1)
-        for key in ("val_scenes", "render_first_seed"):
+        for key in ("val_scenes", "render_first_seed", "workers"):
             _at_least("data", self, key, 0)
+        if not isinstance(self.store, str) or not self.store.strip():
+            raise ConfigError(f"data.store: expected auto, none or a folder, got {self.store!r}")
         _at_least("data", self, "render_ref_spp", 2)
         if self.spp is not None:
             if not self.spp:

@@ -10,7 +10,7 @@ from .train_config import RunConfig
 
 log = logging.getLogger("kpcn.train")  # the training log, whichever module of it speaks
 
-__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP"]
+__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP", "store_dir"]
 
 
 def _is_default_dataset(status, d) -> bool:
@@ -84,3 +84,20 @@ def converged_pairs(pairs):
 
 #: the ``spp`` label of a converged pair (its input is the reference render itself)
 CONVERGED_SPP = 0
+
+
+def store_dir(cfg: RunConfig, spec) -> Path | None:
+    """The patch store folder of ``spec`` that ``data.store`` names (None: ``none``, frames kept in memory).
+
+    ``auto``: ``<data.root>/.store/<spec name>``; any other value is a folder that gets a
+    ``<spec name>`` subfolder (so models with other input specs never share entries).
+    """
+    from .inputs import get_input_spec
+    from .store import default_store_dir
+
+    value = cfg.data.store.strip()
+    if value.lower() == "none":
+        return None
+    if value.lower() == "auto":
+        return default_store_dir(cfg.data.root, spec)
+    return Path(value).expanduser() / get_input_spec(spec).name

@@ -55,6 +55,11 @@ def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -
     return loss(out["color"], batch["y_color"])
 
 
+def _workers(cfg: RunConfig, d: Dist) -> int:
+    """``data.workers``, or (None) 2 on CUDA and 0 on the CPU."""
+    return cfg.data.workers if cfg.data.workers is not None else (2 if d.device.type == "cuda" else 0)
+
+
 def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
     """Yield ``(step, batch)`` from ``start_step``; the batch of a step depends only on seed and step."""
     per_rank = max(1, cfg.train.batch_size // d.world)
@@ -66,7 +71,8 @@ def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
         ds.resample(epoch)
         sampler = DistributedSampler(ds, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.train.seed, drop_last=True)
         sampler.set_epoch(epoch)
-        loader = DataLoader(ds, batch_size=per_rank, sampler=sampler, drop_last=True)
+        loader = DataLoader(ds, batch_size=per_rank, sampler=sampler, drop_last=True, num_workers=_workers(cfg, d),
+                            persistent_workers=False, pin_memory=d.device.type == "cuda")
         for i, batch in enumerate(loader):
             if i < within:
                 continue

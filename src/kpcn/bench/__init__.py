@@ -8,6 +8,8 @@ same run (a ratio):
 * ``train``   — training throughput of configs, patches/s (:mod:`.train`)
 * ``aov``     — light groups: the sum of kpcn's shared-kernel results and of OIDN's
   per-group results against each one's denoised beauty (:mod:`.aov`)
+* ``data``    — training-patch throughput and memory: the frames in memory against the
+  patch store, with and without DataLoader workers (:mod:`.data`)
 * ``denoise`` — whole-frame denoising against Intel OIDN; ``--skip`` the time saved
   by leaving out what a scene does not need (:mod:`.denoise`, :mod:`.skip`)
 
@@ -35,6 +37,7 @@ SUBCOMMANDS: dict[str, Callable[[list[str]], int]] = {
     "train": _lazy("train", "bench_train"),
     "denoise": _lazy("denoise", "bench_denoise"),
     "aov": _lazy("aov", "bench_aov"),
+    "data": _lazy("data", "bench_data"),
 }
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,391 @@
+"""The patch store: every frame's training tensors preprocessed once, on disk, read through memory maps.
+
+:class:`kpcn.data.PatchDataset` built with ``store=<folder>`` crops its patches
+from here instead of holding every frame in memory, so the training set may be
+larger than the RAM. :func:`prepare` builds the entries that are missing or
+stale (and only those); :class:`StoreFrames` reads crops.
+
+Layout (default folder ``<data root>/.store/<spec name>/``, :func:`default_store_dir`)::
+
+    <store>/
+      .lock                            # serialises preparing processes (flock)
+      <scene>-<spp>spp-<hash>/         # one entry per (input, reference) pair
+        half.npy       (H, W, Ch)      # float16 channels (float32 when the frame overflows float16)
+        full.npy       (H, W, Cf)      # float32 channels
+        importance.npy (H, W)          # the importance map of patch sampling, as kpcn.data computes it
+        entry.json                     # written last: the "done" marker (see below)
+
+Channels are stored last, so a patch is one contiguous run per row. Which
+channels are float16 (:func:`float32_channels`): the branch colours and their
+gradients, and the albedo, are float16 — their relative rounding error is at
+most ``2**-11`` (``|x| >= 2**-14``), absolute ``2**-25`` below
+(:data:`HALF_RTOL`, :data:`HALF_ATOL`). Float32 are the variance channels
+(they span 1e-40..1e5: a frame of the 30-scene training set has colour
+variances above float16's 65504, and the ``logvar`` input transform resolves
+them down to 1e-6, where float16's step is 3 %), the targets ``y_*`` (the loss
+compares against them: exact) and ``noisy_color`` (unbounded radiance). A frame
+with any float16-bound value above 65504 stores its ``half.npy`` as float32 —
+never clamped, never infinite; ``entry.json`` records the dtype.
+
+An entry is trusted only when ``entry.json`` parses, carries this
+:data:`STORE_FORMAT` and the frame's current :func:`fingerprint` (spec, the two
+files' paths relative to the store, their sizes and ``st_mtime_ns``, and the
+manifest's render records), and every array file has the header and the exact
+byte size it records. Anything else (a killed build, a truncated file, a
+re-rendered or touched frame, another spec) rebuilds the entry: its
+``entry.json`` is removed first, the arrays are written under temporary names
+and renamed, and ``entry.json`` is written last. The data set itself is only
+read.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import re
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .config import ConfigError
+from .features import COLOR_VAR, FEATURE_VAR, N_FEATURES
+from .inputs import InputSpec, get_input_spec
+from .io import atomic_write
+
+log = logging.getLogger("kpcn.store")
+
+__all__ = ["STORE_FORMAT", "HALF_RTOL", "HALF_ATOL", "StoreError", "Entry", "StoreFrames", "default_store_dir",
+           "float32_channels", "fingerprint", "entry_name", "load_entry", "build_entry", "prepare", "open_store"]
+
+#: Version of the layout and of the preprocessing; entries of another version are rebuilt.
+#: Bump it when the features an input spec builds change.
+STORE_FORMAT = 1
+#: float16's largest finite value: a frame with a larger float16-bound value stores it as float32
+HALF_MAX = 65504.0
+#: the float16 round trip: |stored - x| <= HALF_RTOL * |x| + HALF_ATOL (round to nearest, 11-bit significand)
+HALF_RTOL = 2.0 ** -11
+HALF_ATOL = 2.0 ** -25
+#: frames whose memory maps a process keeps open at most (each map holds a file descriptor);
+#: None: an eighth of the process's file-descriptor limit (two maps a frame: a quarter of it)
+MAX_OPEN: int | None = None
+ENTRY = "entry.json"
+#: the variance channels of the 27-channel split features (kpcn.features)
+_VARIANCE_CHANNELS = (*range(COLOR_VAR.start, COLOR_VAR.stop), *range(FEATURE_VAR.start, FEATURE_VAR.stop))
+
+
+class StoreError(ConfigError):
+    """The patch store cannot be created where ``data.store`` says (a user's error: one line)."""
+
+
+def default_store_dir(root: str | os.PathLike, spec: InputSpec | str) -> Path:
+    """``<root>/.store/<spec name>``: where training keeps the store of a data set by default."""
+    return Path(root) / ".store" / get_input_spec(spec).name
+
+
+def float32_channels(spec: InputSpec, key: str, channels: int) -> np.ndarray:
+    """Boolean mask over the ``channels`` of tensor ``key``: True where the store keeps float32.
+
+    Branch tensors: float32 only for the variance channels of the 27-channel
+    split features; the albedo: none; targets, ``noisy_color`` and any other key: all.
+    """
+    mask = np.ones(channels, bool)
+    if key in spec.branches:
+        mask[:] = False
+        if channels == N_FEATURES and any(n.endswith("Variance") for n in spec.layers):
+            mask[list(_VARIANCE_CHANNELS)] = True
+    elif key == "albedo":
+        mask[:] = False
+    return mask
+
+
+def _rel(path, store_dir) -> str:
+    return os.path.relpath(os.path.abspath(path), os.path.abspath(store_dir))
+
+
+def entry_name(pair, store_dir: str | os.PathLike) -> str:
+    """``<scene>-<spp>spp-<hash>``: the entry folder of ``pair`` (the hash is of the two paths relative to the store)."""
+    rel = "\n".join(_rel(p, store_dir) for p in (pair.input_path, pair.reference_path))
+    scene = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(pair.scene))[:60] or "frame"
+    return f"{scene}-{pair.spp}spp-{hashlib.sha256(rel.encode()).hexdigest()[:12]}"
+
+
+def fingerprint(pair, spec: InputSpec, store_dir: str | os.PathLike) -> dict:
+    """What an entry must match to be trusted: format, spec, each file's relative path, size and mtime, records."""
+    files = {}
+    for role, p in (("input", pair.input_path), ("reference", pair.reference_path)):
+        st = os.stat(p)
+        files[role] = [_rel(p, store_dir), int(st.st_size), int(st.st_mtime_ns)]
+    return {"format": STORE_FORMAT, "spec": spec.name, "channels": spec.channels, "files": files,
+            "records": getattr(pair, "records", None)}
+
+
+def _canon(obj) -> str:
+    return json.dumps(obj, sort_keys=True)
+
+
+@dataclass
+class Entry:
+    """One trusted frame of the store (the contents of its ``entry.json``)."""
+
+    path: Path
+    shape: tuple[int, int]
+    groups: dict  #: "half"/"full" -> {"file", "dtype", "channels"}
+    keys: dict  #: tensor name -> runs [group, first source channel, end, first channel of the tensor]
+    channels: dict  #: tensor name -> its number of channels
+    importance: str | None  #: file of the importance map (None: the frame has no colour/normal variance)
+    importance_dtype: str | None = None
+
+
+def _npy_ok(path: Path, dtype: str, shape: tuple) -> bool:
+    """Whether ``path`` is a complete C-order ``.npy`` of ``dtype`` and ``shape`` (header and byte size)."""
+    fmt = np.lib.format
+    try:
+        with open(path, "rb") as f:
+            version = fmt.read_magic(f)
+            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shp, fortran, dt = read(f)
+            offset = f.tell()
+        size = os.path.getsize(path)
+    except (OSError, ValueError, EOFError):
+        return False
+    return (tuple(shp) == tuple(shape) and not fortran and dt == np.dtype(dtype)
+            and size == offset + int(np.prod(shape)) * dt.itemsize)
+
+
+def load_entry(folder: Path, fp: dict) -> Entry | None:
+    """The entry in ``folder`` if it is complete and matches ``fp``, else None (it is then rebuilt)."""
+    try:
+        meta = json.loads((folder / ENTRY).read_text())
+        if meta.get("format") != STORE_FORMAT or _canon(meta.get("fingerprint")) != _canon(fp):
+            return None
+        h, w = (int(v) for v in meta["shape"])
+        for info in meta["groups"].values():
+            if not _npy_ok(folder / info["file"], info["dtype"], (h, w, int(info["channels"]))):
+                return None
+        imp = meta.get("importance")
+        if imp and not _npy_ok(folder / imp, meta["importance_dtype"], (h, w)):
+            return None
+        return Entry(folder, (h, w), meta["groups"], meta["keys"], meta["channels"], imp, meta.get("importance_dtype"))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def _layout(spec: InputSpec, tensors: dict[str, np.ndarray]) -> tuple[dict[str, int], dict[str, list]]:
+    """Channels per group and, per tensor, its runs ``[group, src, src_end, dst]`` (contiguous in both)."""
+    counts = {"half": 0, "full": 0}
+    runs: dict[str, list] = {}
+    for key, t in tensors.items():
+        mask = float32_channels(spec, key, t.shape[0])
+        rk: list = []
+        for c in range(t.shape[0]):
+            g = "full" if mask[c] else "half"
+            src = counts[g]
+            counts[g] += 1
+            if rk and rk[-1][0] == g and rk[-1][2] == src and rk[-1][3] + (rk[-1][2] - rk[-1][1]) == c:
+                rk[-1][2] += 1
+            else:
+                rk.append([g, src, src + 1, c])
+        runs[key] = rk
+    return {g: n for g, n in counts.items() if n}, runs
+
+
+def _write_npy(path: Path, arr: np.ndarray) -> None:
+    def write(tmp: str) -> None:
+        mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=arr.dtype, shape=arr.shape)
+        mm[...] = arr
+        mm.flush()
+        del mm
+
+    atomic_write(path, write)
+
+
+def build_entry(pair, spec: InputSpec, folder: Path, fp: dict) -> Entry:
+    """Preprocess ``pair`` into ``folder`` (atomically: ``entry.json`` is removed first and written last)."""
+    from .data import importance_map, pair_tensors, read_pair
+
+    noisy, ref = read_pair(pair, spec)
+    tensors = {k: v[0].numpy() for k, v in pair_tensors(noisy, ref, spec).items()}
+    imp = None
+    if "colorVariance" in noisy and "normalVariance" in noisy:
+        imp = importance_map(noisy["colorVariance"], noisy["normalVariance"])
+    counts, runs = _layout(spec, tensors)
+    h, w = tensors["albedo"].shape[-2:]
+    arrays = {g: np.empty((h, w, n), np.float32) for g, n in counts.items()}
+    for key, rk in runs.items():
+        for g, a, b, d in rk:
+            arrays[g][..., a:b] = tensors[key][d : d + b - a].transpose(1, 2, 0)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / ENTRY).unlink(missing_ok=True)  # untrusted from here until entry.json is written again
+    groups = {}
+    for g, arr in arrays.items():
+        dtype = "float32"
+        if g == "half":
+            if np.abs(arr).max(initial=0.0) <= HALF_MAX:
+                dtype = "float16"
+            else:
+                log.info("%s: values beyond float16's range (%.3g): its half.npy is float32",
+                         pair.input_path, float(np.abs(arr).max()))
+        _write_npy(folder / f"{g}.npy", arr.astype(dtype, copy=False))
+        groups[g] = {"file": f"{g}.npy", "dtype": dtype, "channels": int(arr.shape[-1])}
+    if imp is not None:
+        _write_npy(folder / "importance.npy", np.ascontiguousarray(imp))
+    else:
+        (folder / "importance.npy").unlink(missing_ok=True)
+    meta = {"format": STORE_FORMAT, "fingerprint": fp, "shape": [int(h), int(w)], "groups": groups, "keys": runs,
+            "channels": {k: int(v.shape[0]) for k, v in tensors.items()},
+            "importance": "importance.npy" if imp is not None else None,
+            "importance_dtype": str(imp.dtype) if imp is not None else None,
+            "source": {"input": str(pair.input_path), "reference": str(pair.reference_path)}}
+    atomic_write(folder / ENTRY, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
+    return Entry(folder, (int(h), int(w)), groups, runs, meta["channels"], meta["importance"], meta["importance_dtype"])
+
+
+@contextlib.contextmanager
+def _locked(store_dir: Path):
+    """An exclusive ``flock`` on ``<store>/.lock`` (none where flock is unavailable)."""
+    try:
+        import fcntl
+
+        fh = open(store_dir / ".lock", "a")
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        except OSError:
+            pass
+        yield
+    finally:
+        fh.close()  # releases the lock
+
+
+@dataclass
+class Prepared:
+    entries: list[Entry]  #: one per pair, in order
+    built: list[int]  #: indices of the pairs preprocessed by this call (missing, stale or damaged entries)
+
+
+def prepare(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, progress: bool = False) -> Prepared:
+    """Make sure every pair has a trusted entry in ``store_dir``; (re)build only those that do not.
+
+    Raises:
+        StoreError: ``store_dir`` cannot be created.
+    """
+    spec = get_input_spec(spec)
+    store_dir = Path(store_dir)
+    try:
+        store_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"data.store: cannot create the patch store {store_dir} ({exc.strerror or exc}); set "
+                         f"data.store to a writable folder, or to none to keep the frames in memory") from None
+    with _locked(store_dir):
+        entries: list = [None] * len(pairs)
+        stale = []
+        for i, p in enumerate(pairs):
+            fp = fingerprint(p, spec, store_dir)
+            entries[i] = load_entry(store_dir / entry_name(p, store_dir), fp)
+            if entries[i] is None:
+                stale.append((i, fp))
+        if stale:
+            log.info("patch store %s: preprocessing %d of %d frames", store_dir, len(stale), len(pairs))
+        from tqdm import tqdm
+
+        for i, fp in tqdm(stale, desc="patch store", disable=not progress, dynamic_ncols=True):
+            entries[i] = build_entry(pairs[i], spec, store_dir / entry_name(pairs[i], store_dir), fp)
+    return Prepared(entries, [i for i, _ in stale])
+
+
+def _max_open() -> int:
+    if MAX_OPEN is not None:
+        return MAX_OPEN
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+        soft = 65536 if soft == resource.RLIM_INFINITY else soft
+    except (ImportError, OSError, ValueError):
+        soft = 1024
+    return max(16, soft // 8)
+
+
+class StoreFrames:
+    """Crops of the frames of a store, read through memory maps.
+
+    The maps are opened on first use in each process (a DataLoader worker opens
+    its own; pickling drops them) and stay open, the least recently used frames
+    closed beyond :data:`MAX_OPEN` (reopening costs the map and its page faults
+    again: with the usual limit of 1024 descriptors, 128 frames stay open).
+    """
+
+    def __init__(self, entries: Sequence[Entry]):
+        self.entries = list(entries)
+        self.sizes = [e.shape for e in self.entries]
+        self._open: OrderedDict = OrderedDict()
+        self._pid: int | None = None
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_open"], state["_pid"] = OrderedDict(), None
+        return state
+
+    def _arrays(self, i: int) -> dict[str, np.ndarray]:
+        if self._pid != os.getpid():  # a forked worker does not use its parent's maps
+            self._open, self._pid = OrderedDict(), os.getpid()
+        arrays = self._open.get(i)
+        if arrays is None:
+            e = self.entries[i]
+            arrays = {g: np.load(e.path / info["file"], mmap_mode="r") for g, info in e.groups.items()}
+            for g, info in e.groups.items():  # rebuilt by another process since this one checked it?
+                if arrays[g].shape != (*e.shape, info["channels"]) or arrays[g].dtype != np.dtype(info["dtype"]):
+                    raise RuntimeError(f"patch store entry {e.path} changed while in use ({g}.npy is now "
+                                       f"{arrays[g].dtype}{arrays[g].shape}); start the run again")
+            self._open[i] = arrays
+            while len(self._open) > _max_open():
+                self._open.popitem(last=False)
+        else:
+            self._open.move_to_end(i)
+        return arrays
+
+    def crop(self, i: int, y: int, x: int, size: int) -> dict[str, torch.Tensor]:
+        """Float32 ``(C, h, w)`` tensors of frame ``i`` at rows ``y:y+size``, columns ``x:x+size`` (clipped)."""
+        # each group's crop: rows copied out of the map, then converted and made channel-first in one pass
+        crops = {g: torch.from_numpy(np.array(a[y : y + size, x : x + size], order="C")).permute(2, 0, 1)
+                 .to(torch.float32, memory_format=torch.contiguous_format) for g, a in self._arrays(i).items()}
+        out = {}
+        for key, runs in self.entries[i].keys.items():
+            if len(runs) == 1:  # one run: a view of the group's crop
+                g, a, b, _ = runs[0]
+                out[key] = crops[g][a:b]
+            else:  # runs are in the tensor's channel order
+                out[key] = torch.cat([crops[g][a:b] for g, a, b, _ in runs])
+        return out
+
+    def importance(self, i: int) -> np.ndarray | None:
+        e = self.entries[i]
+        return np.load(e.path / e.importance) if e.importance else None
+
+
+def open_store(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, importance: bool = False,
+               progress: bool = False) -> StoreFrames:
+    """:func:`prepare` the store, then a :class:`StoreFrames` over it.
+
+    ``importance``: every frame must have an importance map (its noisy render has
+    colour and normal variances); the error of a frame without is the reader's
+    :class:`~kpcn.io.MissingLayerError`, as with the frames kept in memory.
+    """
+    from .data import read_pair
+
+    spec = get_input_spec(spec)
+    prepared = prepare(pairs, spec, store_dir, progress)
+    if importance:
+        for p, e in zip(pairs, prepared.entries):
+            if e.importance is None:
+                read_pair(p, spec)[0].require(("colorVariance", "normalVariance"))
+    return StoreFrames(prepared.entries)
