@@ -245,7 +245,7 @@ class DenoiseBenchConfig:
         "help": "configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
                 "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); --skip: the first"})
     oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
-    tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default 256; --skip: 64)"})
+    tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default: auto, the whole frame up to 1920x1080; --skip: 64)"})
     scene: str = field(default="random:3", metadata={"help": "scene to render"})
     spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
     seed: int = 0
@@ -290,7 +290,7 @@ def bench_denoise(argv: list[str]) -> int:
         return bench_denoise_skip(args)
     args.repeats = args.repeats or 1
     args.sizes = args.sizes or [(256, 256), (1024, 1024), (1920, 1080)]
-    tile = args.tile if args.tile_given else 256
+    tile = args.tile if args.tile_given else "auto"
     specs = {name: _denoise_model_spec(name) for name in args.models}
 
     tmp = None

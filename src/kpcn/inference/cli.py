@@ -54,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="allow a .pt checkpoint that only full unpickling can load; unpickling runs any code "
                         "the file contains, so use this only for files you trust (kpcn's own files never need it)")
-    p.add_argument("--tile", type=int, default=256, help="tile size in pixels, 0 = whole frame (default 256)")
+    p.add_argument("--tile", type=_tile_arg, default="auto",
+                   help="tile size in pixels, 0 = whole frame, auto = whole frame up to 1920x1080, "
+                        "else tiles of max(512, 4 x the model's halo) (default auto)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto)")
     p.add_argument("--half", action="store_true", help="float16 autocast (CUDA only)")
     p.add_argument("--no-skip", action="store_true", help="run the network on every tile and branch")
@@ -78,6 +80,15 @@ def _jobs(args) -> list[tuple[str, str]]:
     if args.out:
         return [(args.inputs[0], args.out)]
     return [(inp, os.fspath(_default_out(Path(inp), args.out_dir))) for inp in args.inputs]
+
+
+def _tile_arg(value: str):
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {value!r}") from None
 
 
 def main(argv: list[str] | None = None) -> int:

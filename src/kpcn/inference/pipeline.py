@@ -41,7 +41,7 @@ from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
-from .tiling import plan_tiles, tile_size
+from .tiling import auto_tile, plan_tiles, tile_size
 from .weights import choose_default, describe, load_model, resolve_device
 
 __all__ = ["denoise", "denoise_result", "DenoiseResult", "DenoiseStats", "PASSTHROUGH_REL_STD", "peak_rss_mb"]
@@ -135,7 +135,7 @@ def denoise_result(
     model=None,
     out_path: str | os.PathLike | None = None,
     *,
-    tile: int | None = 256,
+    tile: int | str | None = "auto",
     device: str | torch.device = "auto",
     half: bool = False,
     skip: bool = True,
@@ -144,8 +144,8 @@ def denoise_result(
     aov_branch: str | None = None,
 ) -> DenoiseResult:
     """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour, ``layers`` and :class:`DenoiseStats`)."""
-    if tile is not None and (isinstance(tile, bool) or int(tile) != tile):
-        raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame), got {tile!r}")
+    if tile != "auto" and tile is not None and (isinstance(tile, (bool, str)) or int(tile) != tile):
+        raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame) or 'auto', got {tile!r}")
     if out_path is not None:  # refused before any work, not after it
         check_output_path(out_path)
         source = _source_path(exr_path_or_frame)
@@ -170,6 +170,8 @@ def denoise_result(
     aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
+    if tile == "auto":
+        tile = auto_tile(h, w, halo, align)
     use_half = bool(half) and dev.type == "cuda"
     if half and not use_half:
         warnings.warn("denoise: half=True is only used on CUDA; running float32 on the CPU", RuntimeWarning, stacklevel=2)
@@ -194,7 +196,9 @@ def denoise_result(
     out = np.empty((h, w, 3), dtype=np.float32)
     with torch.inference_mode():
         context = None
-        if net.uses_frame_context and active:
+        tiles = list(plan_tiles(h, w, tile, halo, align))
+        # one tile that is the whole frame: each branch's own summary is the frame's (no separate pass)
+        if net.uses_frame_context and active and not (len(tiles) == 1 and tiles[0].crop == (slice(0, h), slice(0, w))):
             tc = time.perf_counter()
             whole = (slice(None), slice(None))
             full = spec.build(_tensors(frame, spec.layers_for(active), whole, dev), depth_scale, active)
@@ -202,7 +206,7 @@ def denoise_result(
                 context = net.frame_context(full)
             del full
             stats.frame_context_seconds = time.perf_counter() - tc
-        for t in plan_tiles(h, w, tile, halo, align):
+        for t in tiles:
             stats.tiles += 1
             crop = t.crop
             if var_in is not None and not np.any(frame["depth"][crop] > 0):
@@ -274,7 +278,7 @@ def denoise(
     model=None,
     out_path: str | os.PathLike | None = None,
     *,
-    tile: int | None = 256,
+    tile: int | str | None = "auto",
     device: str | torch.device = "auto",
     half: bool = False,
     skip: bool = True,
@@ -302,7 +306,9 @@ def denoise(
             be the input file (nor the file a :class:`~kpcn.io.Frame` was read from),
             under any spelling: relative, through a symlink, or a hard link of it.
         tile: interior tile size in pixels (rounded up to the model's alignment);
-            ``None`` or ``0``: the whole frame at once.
+            ``None`` or ``0``: the whole frame at once; ``"auto"`` (default): the whole frame
+            up to about 1920x1080 (fastest: nothing is computed twice), larger frames in tiles
+            of ``max(512, 4 * halo)`` (:func:`kpcn.inference.tiling.auto_tile`).
         device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"``, ...
         half: float16 autocast on CUDA (ignored, with a warning, on the CPU).
         skip: leave out zero branches, zero tiles and no-hit converged tiles

@@ -14,7 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator
 
-__all__ = ["Tile", "plan_tiles", "tile_size"]
+__all__ = ["Tile", "plan_tiles", "tile_size", "auto_tile", "WHOLE_FRAME_PIXELS"]
+
+#: ``tile="auto"`` denoises frames up to this many pixels (1920x1080 and a little more) whole
+WHOLE_FRAME_PIXELS = 2_100_000
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,14 @@ def tile_size(tile: int | None, alignment: int = 1) -> int | None:
         return None
     a = max(1, int(alignment))
     return -(-int(tile) // a) * a
+
+
+def auto_tile(height: int, width: int, halo: int, alignment: int = 1) -> int | None:
+    """The tile ``tile="auto"`` uses: None (the whole frame) up to :data:`WHOLE_FRAME_PIXELS`, else
+    interiors of ``max(512, 4 * halo)`` pixels, so that the halo (computed twice) stays a small part."""
+    if height * width <= WHOLE_FRAME_PIXELS:
+        return None
+    return tile_size(max(512, 4 * int(halo)), alignment)
 
 
 def plan_tiles(height: int, width: int, tile: int | None, halo: int, alignment: int = 1) -> Iterator[Tile]:

@@ -32,7 +32,7 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("--name", help="report name: files go to <out>/<name>/ (default: default, or quick)")
     p.add_argument("--seed", type=int, help="base render seed (default: 0)")
     p.add_argument("--device", help="auto, cpu or cuda (default: auto)")
-    p.add_argument("--tile", type=int, help="denoise tile size (default: 256)")
+    p.add_argument("--tile", type=int, help="denoise tile size (default: 0, whole frames)")
     p.add_argument("--repeats", type=int, help="timed denoise calls per frame, median reported (default: 1)")
     p.add_argument("--equal-time-spp", type=int, help="model spp of the equal-time figure (default: 8)")
     p.add_argument("--contact-spp", type=int, help="spp of the contact sheet (default: 8)")

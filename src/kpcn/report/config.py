@@ -50,7 +50,7 @@ class ReportConfig:
     name: str = "default"
     seed: int = 0
     device: str = "auto"
-    tile: int = 256
+    tile: int = 0  #: denoise tile size; 0: whole frames (the report's frames are small)
     repeats: int = 1  #: timed denoise calls per frame; the median is reported (the result of the last is kept)
     equal_time_spp: int = 8  #: the model's spp for the equal-time figure (nearest ladder spp if absent)
     contact_spp: int = 8  #: spp shown in the contact sheet (nearest ladder spp if absent)
