@@ -1,22 +1,33 @@
 """Numerical stability of denoising and training on extreme inputs built from tiny real renders.
 
-Models: a small random-init KPCN and DPCN, and the shipped default weights
-(``src/kpcn/weights/kpcn_small.safetensors``, i.e. ``weights_entry("kpcn").path``)
-when that file exists. Set ``KPCN_REQUIRE_DEFAULT=1`` to make a missing default
-file a failure instead of leaving it out.
+Models: every registered model (``list_models()``), random-init at a CPU-small
+size (:data:`SMALL`), under each input spec its config accepts, plus the options
+of :data:`OPTION_VARIANTS` (the multi-scale U-Net); and the shipped default
+weights (``weights_entry(DEFAULT_MODEL).path``) when that file exists. Set
+``KPCN_REQUIRE_DEFAULT=1`` to make a missing default file a failure instead of
+leaving it out.
 
-What is asserted, and why:
+What is asserted keys on what a model declares (:class:`kpcn.models.DenoiserModel`),
+and ``test_declarations_match_what_the_model_does`` checks the declarations:
 
 * every model, every case: the output is finite and non-negative;
-* KPCN (random or trained; kernel predictors declare ``model.zero_preserving``):
-  each output pixel lies in the range that the convex-combination property
-  allows, ``(albedo + eps) * [min, max] of the diffuse branch colour + [min,
-  max] of the specular radiance`` over its ``k x k`` neighbourhood; a constant
-  image comes back unchanged (1e-5 relative);
+* ``convex_kernels`` (single-scale kernel predictors: KPCN, mskpcn, unet_kpcn
+  with one kernel scale; random or trained): each output pixel lies in the
+  range that the convex-combination property allows over the ``kernel_size``
+  neighbourhood padded as ``kernel_padding`` says. Split specs: ``(albedo + eps)
+  * [min, max] of the diffuse branch colour + [min, max] of the specular
+  radiance``; ``color_albedo_normal``: ``[min, max]`` of the colour itself;
+* ``zero_preserving``: an all-black frame comes back exactly black, also when no
+  branch is skipped; with ``kernel_padding == "replicate"`` (kernels summing to
+  one that repeat the border) a constant image comes back unchanged (1e-5
+  relative). Both hold for the multi-scale U-Net, whose coarse-to-fine
+  combination is not convex (so it gets no neighbourhood bound);
 * the shipped default model only: a converged input is not made worse,
   ``relMSE(out, ref) <= 1.1 relMSE(in, ref) + 1e-4``. A random-init network
-  carries no such promise (it blurs), so for it only the bound above is checked.
+  carries no such promise (it blurs), so for it only the checks above apply;
 * one training step on extreme patches gives a finite loss and finite gradients.
+
+``test_the_bound_check_can_fail`` is the negative control of the bound.
 """
 from __future__ import annotations
 
@@ -29,37 +40,66 @@ import torch.nn.functional as F
 
 from kpcn import inference as dn
 from kpcn.constants import EPS
-from kpcn.features import make_features, make_targets
+from kpcn.features import frame_to_tensors
+from kpcn.inputs import list_input_specs
 from kpcn.io import Frame, read_exr, write_exr
 from kpcn.losses import create_loss
 from kpcn.metrics import relmse
-from kpcn.models import KPCNBranch, create_model, weights_entry
+from kpcn.models import create_model, list_models, model_config_class, weights_entry
+from kpcn.ops.kernel_apply import PADDING_MODES, kernel_apply
 
 RES = (24, 24)
-SMALL = dict(layers=3, width=12, conv_size=3, kernel_size=5, out_init_gain=1.0)
+#: CPU-small settings of the registered models (a model not listed here runs with its defaults)
+SMALL = {
+    "kpcn": dict(layers=3, width=12, conv_size=3, kernel_size=5, out_init_gain=1.0),
+    "dpcn": dict(layers=3, width=12, conv_size=3, kernel_size=5, out_init_gain=1.0),
+    "mskpcn": dict(width=8, blocks=1, tail_layers=2, kernel_size=5, out_init_gain=1.0),
+    "unet_kpcn": dict(widths=[8, 8, 12, 16], convs_per_level=1, kernel_size=5, summary_channels=4, out_init_gain=1.0),
+}
+#: options that change how a model reconstructs (Vogels et al.'s multi-scale kernels: not convex)
+OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_scales": 3}]}
+
+
+def _variants() -> dict[str, tuple[str, dict]]:
+    """``{id: (model name, config)}``: every registered model, each other input spec it takes, the options."""
+    out = {}
+    for name in list_models():
+        small = SMALL.get(name, {})
+        out[name] = (name, dict(small))
+        fields = model_config_class(name).__dataclass_fields__
+        if "input_spec" in fields:
+            for spec in list_input_specs():
+                if spec != fields["input_spec"].default:
+                    out[f"{name}-{spec}"] = (name, {**small, "input_spec": spec})
+        for kw in OPTION_VARIANTS.get(name, []):
+            out[name + "-" + ",".join(f"{k}={v}" for k, v in kw.items())] = (name, {**small, **kw})
+    return out
+
+
+VARIANTS = _variants()
 REQUIRE_DEFAULT = os.environ.get("KPCN_REQUIRE_DEFAULT") == "1"
 DEFAULT_WEIGHTS = weights_entry(dn.DEFAULT_MODEL).path
-MODEL_IDS = ["kpcn", "dpcn"] + (["default"] if DEFAULT_WEIGHTS.exists() or REQUIRE_DEFAULT else [])
+MODEL_IDS = list(VARIANTS) + (["default"] if DEFAULT_WEIGHTS.exists() or REQUIRE_DEFAULT else [])
 RADIANCE = ("color", "diffuse", "specular")
+
+
+def _small(variant: str):
+    name, kw = VARIANTS[variant]
+    torch.manual_seed(0)
+    return create_model(name, **kw)
 
 
 @pytest.fixture(scope="module", params=MODEL_IDS)
 def model(request):
     if request.param == "default":
         assert DEFAULT_WEIGHTS.exists(), f"KPCN_REQUIRE_DEFAULT=1 but {DEFAULT_WEIGHTS} does not exist"
-        m = dn.load_model(None, device="cpu")
-    else:
-        torch.manual_seed(0)
-        m = create_model(request.param, **SMALL).eval()
-    # the KPCN-only checks below key on zero_preserving: it must be set for exactly the kernel predictors
-    assert m.zero_preserving == isinstance(m.diffuse, KPCNBranch)
-    assert m.zero_preserving == (request.param != "dpcn")
-    return m
+        return dn.load_model(None, device="cpu")  # shared (cached): never modified here
+    return _small(request.param).eval()
 
 
-def _is_kpcn(m) -> bool:
-    # kernel predictors declare zero_preserving (the convex-combination bounds below hold for them)
-    return m.zero_preserving
+def _keeps_constants(m) -> bool:
+    # kernels summing to one that repeat the border pixels: a constant image is a fixed point
+    return m.zero_preserving and m.kernel_padding == "replicate"
 
 
 def _copy(frame: Frame) -> Frame:
@@ -151,14 +191,17 @@ def _nbhd(x: np.ndarray, k: int, mode: str):
     return lo[0].permute(1, 2, 0).numpy(), hi[0].permute(1, 2, 0).numpy()
 
 
-def _kpcn_bounds(frame: Frame, model):
-    """Range a KPCN output may take at each pixel (convex combinations in each branch)."""
-    cfg = model.config
+def _convex_bounds(frame: Frame, model):
+    """Range a ``convex_kernels`` model's output may take at each pixel (convex combinations in each branch)."""
+    k, mode = model.kernel_size, model.kernel_padding
+    if model.branches == ("color",):  # linear colour, clamped at 0 as the spec builds it
+        return _nbhd(np.maximum(frame["color"].astype(np.float64), 0.0), k, mode)
+    assert model.branches == ("diffuse", "specular"), f"no neighbourhood bound written for branches {model.branches}"
     albedo = np.maximum(frame["albedo"].astype(np.float64), 0.0)
     diff = np.maximum(frame["diffuse"].astype(np.float64), 0.0) / (albedo + EPS)
     spec = np.maximum(frame["specular"].astype(np.float64), 0.0)
-    dlo, dhi = _nbhd(diff, cfg.kernel_size, cfg.padding_mode)
-    slo, shi = _nbhd(spec, cfg.kernel_size, cfg.padding_mode)  # expm1 o convex-comb o log1p is monotone
+    dlo, dhi = _nbhd(diff, k, mode)
+    slo, shi = _nbhd(spec, k, mode)  # expm1 o convex-comb o log1p is monotone
     return (albedo + EPS) * dlo + slo, (albedo + EPS) * dhi + shi
 
 
@@ -167,14 +210,85 @@ def _check_output(out: np.ndarray, frame: Frame, model, case: str) -> None:
     assert out.shape == (h, w, 3) and out.dtype == np.float32
     assert np.isfinite(out).all(), f"{case}: non-finite output"
     assert (out >= 0).all(), f"{case}: negative output (min {out.min()})"
-    if _is_kpcn(model):
-        lo, hi = _kpcn_bounds(frame, model)
+    if model.convex_kernels:
+        lo, hi = _convex_bounds(frame, model)
         tol = 1e-4
         assert (out >= lo * (1 - tol) - 1e-30).all(), f"{case}: below the neighbourhood range by {np.max(lo - out):.3g}"
         assert (out <= hi * (1 + tol) + 1e-30).all(), f"{case}: above the neighbourhood range by {np.max(out - hi):.3g}"
 
 
+def _kernel_paddings_that_explain(m, inputs, context) -> set[str]:
+    """Paddings ``p`` such that every branch's output is its kernels (``branch_kernels``: non-negative,
+    summing to one, ``kernel_size``² taps) applied to its noisy colour with ``p``; empty when none does."""
+    found = set(PADDING_MODES)
+    for b in m.branches:
+        x = inputs[b]
+        try:
+            k = m.branch_kernels(b, x, context)
+        except NotImplementedError:
+            return set()
+        if not isinstance(k, torch.Tensor) or k.shape[1] != m.kernel_size**2:
+            return set()  # e.g. multi-scale kernels
+        if k.min() < 0 or not torch.allclose(k.sum(1), torch.ones(()), atol=1e-5):
+            return set()
+        y = m.run_branch(b, x, context)
+        colour = x[:, :3].contiguous()
+        found = {p for p in found
+                 if torch.allclose(y, kernel_apply(colour, k, m.kernel_size, p), rtol=1e-5, atol=1e-6 * float(y.abs().max()))}
+    return found
+
+
+def test_declarations_match_what_the_model_does(render, model):
+    """``convex_kernels``, ``kernel_padding`` and ``zero_preserving`` (which the checks here key on) are true."""
+    spec = model.input_spec
+    frame = render("test:glossy", 8, 1, resolution=RES)
+    with torch.no_grad():
+        inputs = spec.build(frame_to_tensors(frame, spec.layers))
+        explained = _kernel_paddings_that_explain(model, inputs, model.frame_context(inputs))
+        assert model.convex_kernels == bool(explained), (model.convex_kernels, explained)
+        if model.convex_kernels:
+            assert model.kernel_padding in explained and model.zero_preserving
+        # a zero branch colour (normals, albedo, depth as rendered) gives exactly zero, iff declared
+        black = spec.build(frame_to_tensors(_all_black(frame), spec.layers))
+        out = model(black, model.frame_context(black))
+    zero = all(torch.equal(out[b], torch.zeros_like(out[b])) for b in (*model.branches, "color"))
+    assert model.zero_preserving == zero
+    if model.zero_preserving:
+        assert model.kernel_padding in PADDING_MODES, "a zero-preserving kernel predictor declares its padding"
+
+
+def test_the_bound_check_can_fail(render, monkeypatch):
+    """Negative controls: the range check catches an output scaled by 1.5 (or 0.5) and the multi-scale U-Net."""
+    frame = _firefly(render("test:glossy", 8, 1, resolution=RES))
+    for spec in ("kpcn_split", "color_albedo_normal"):
+        m = _small("kpcn" if spec == "kpcn_split" else f"kpcn-{spec}").eval()
+        out = dn.denoise(frame, m, tile=8, device="cpu")
+        _check_output(out, frame, m, "control")
+        with pytest.raises(AssertionError, match="below the neighbourhood range"):
+            _check_output(out * np.float32(0.5), frame, m, "x0.5")
+        branch = m.run_branch
+        # a model declared convex whose branches come out 1.5 times too bright
+        monkeypatch.setattr(m, "run_branch", lambda name, x, context=None: 1.5 * branch(name, x, context))
+        with pytest.raises(AssertionError, match="above the neighbourhood range"):
+            _check_output(dn.denoise(frame, m, tile=8, device="cpu"), frame, m, "x1.5")
+    # the multi-scale U-Net is rightly not declared convex: its coarse level carries the firefly further
+    ms = _small("unet_kpcn-kernel_scales=3").eval()
+    out = dn.denoise(frame, ms, tile=8, device="cpu")
+    _check_output(out, frame, ms, "multi-scale")
+    monkeypatch.setattr(type(ms), "convex_kernels", True)
+    with pytest.raises(AssertionError, match="neighbourhood range"):
+        _check_output(out, frame, ms, "multi-scale declared convex")
+
+
 # ----------------------------------------------------------------------------- denoising
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_cases_edit_the_colour_with_the_split(render, case):
+    """Each case's ``color`` is ``diffuse + specular``: a color_albedo_normal model sees the same extreme."""
+    f = CASES[case](render)
+    c, d, s = (f[n].astype(np.float64) for n in ("color", "diffuse", "specular"))
+    np.testing.assert_allclose(c, d + s, rtol=1e-6, atol=1e-6 * np.abs(c).max())
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -183,6 +297,11 @@ def test_extreme_inputs(render, model, case):
     for tile in (None, 8):
         out = dn.denoise(frame, model, tile=tile, device="cpu")
         _check_output(out, frame, model, f"{case} (tile {tile})")
+    if case == "all_black":  # the model run on it, not skipped
+        out = dn.denoise(frame, model, device="cpu", skip=False)
+        _check_output(out, frame, model, f"{case} (no skip)")
+        if model.zero_preserving:
+            assert not out.any(), f"{case}: a zero-preserving model gave non-zero output"
 
 
 def test_nan_inf_negative_through_the_exr_reader(render, model, tmp_path):
@@ -197,6 +316,7 @@ def test_nan_inf_negative_through_the_exr_reader(render, model, tmp_path):
     plant("diffuse", (1, 2, 0), np.nan)
     plant("diffuse", (5, 6, 1), np.inf)
     plant("color", (5, 6, 1), np.inf)
+    plant("color", (8, 3, 2), np.nan)  # the colour is all that color_albedo_normal models read
     plant("specular", (7, 8, 2), -np.inf)
     plant("specular", (9, 9, 0), np.inf)
     plant("albedo", (3, 3, 1), np.nan)
@@ -246,7 +366,7 @@ def test_constant_image_stays_constant(model):
         for tile in (None, 8):
             out = dn.denoise(frame, model, tile=tile, device="cpu")
             _check_output(out, frame, model, f"constant x{scale}")
-            if _is_kpcn(model):
+            if _keeps_constants(model):
                 np.testing.assert_allclose(out, f["color"], rtol=1e-5, atol=0)
 
 
@@ -270,17 +390,14 @@ def test_converged_input_is_not_made_worse(render, model, request):
 # ----------------------------------------------------------------------------- training
 
 
-def _batch(frame: Frame, ref: Frame, crops):
+def _batch(frame: Frame, ref: Frame, crops, spec):
+    """Inputs and targets of 16x16 crops, as the spec builds them for training (``kpcn.data.pair_tensors``)."""
     def stack(fr, names):
         return {n: torch.stack([torch.from_numpy(fr[n][y:y + 16, x:x + 16].transpose(2, 0, 1).copy()) for y, x in crops])
                 for n in names}
 
-    from kpcn.features import INPUT_LAYERS
-
-    buffers = stack(frame, INPUT_LAYERS)
-    feats = make_features(buffers)
-    targets = make_targets(stack(ref, ("diffuse", "specular")), feats.albedo)
-    return feats, targets
+    inputs = spec.build(stack(frame, spec.layers))
+    return inputs, spec.targets(stack(ref, spec.target_layers), inputs)
 
 
 TRAIN_CASES = {
@@ -301,34 +418,60 @@ def _nan_inf(f: Frame) -> Frame:
     f.layers["albedo"][4, 4, 2] = -np.inf
     f.layers["diffuseVariance"][5, 5, 0] = np.inf
     f.layers["specular"][6:9, 6:9] = -3.0
+    f.layers["color"][1, 2, 0] = np.nan
+    f.layers["color"][3, 3, 1] = np.inf
+    f.layers["color"][6:9, 6:9] = -3.0
+    f.layers["normal"][7, 2, 1] = np.nan
     return f
 
 
-TRAIN_CASES["nan_inf_negative_raw"] = _nan_inf  # straight into make_features, no reader in between
+TRAIN_CASES["nan_inf_negative_raw"] = _nan_inf  # straight into the spec's build, no reader in between
 
 
-@pytest.mark.parametrize("kind", ["kpcn", "dpcn"])
+def _bad_grads(m) -> list[str]:
+    return [n for n, p in m.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
 @pytest.mark.parametrize("loss_name", ["l1", "log"])
-def test_training_step_on_extreme_patches_is_finite(render, kind, loss_name):
+def test_training_step_on_extreme_patches_is_finite(render, variant, loss_name):
+    """Every case's patches in one batch (samples are independent: a non-finite gradient of any case
+    makes the sum non-finite); the losses are checked per case, and a bad gradient is traced to its case."""
     base = render("test:glossy", 8, 1, resolution=RES)
     ref = render("test:glossy", 64, 2, role=1, resolution=RES)
     loss_fn = create_loss(loss_name)
-    torch.manual_seed(0)
-    m = create_model(kind, **SMALL).train()
+    m = _small(variant).train()
+    spec = m.input_spec
     crops = [(0, 0), (8, 8), (4, 6)]
+    batches = {}
     for case, make in TRAIN_CASES.items():
         noisy = make(base)
         # the reference gets the same radiance scale as the input
         r = _scale(ref, 1e8) if case == "radiance_1e8" else _scale(ref, 1e-8) if case == "radiance_1e-8" else ref
-        feats, tg = _batch(noisy, r, crops)
-        for name, x in feats.as_dict().items():
-            assert torch.isfinite(x).all(), f"{case}: non-finite feature {name}"
+        inputs, tg = _batch(noisy, r, crops, spec)
+        for name, x in (*inputs.items(), *tg.items()):
+            assert torch.isfinite(x).all(), f"{case}: non-finite {name}"
+        batches[case] = {**inputs, **tg}
+
+    def step(cases) -> torch.Tensor:
+        batch = {k: torch.cat([batches[c][k] for c in cases]) for k in batches[cases[0]]}
         m.zero_grad(set_to_none=True)
-        out = m({"diffuse": feats.x_diffuse, "specular": feats.x_specular, "albedo": feats.albedo})
-        stage1 = loss_fn(out["diffuse"], tg["y_diffuse"]) + loss_fn(out["specular"], tg["y_specular"])
-        stage2 = loss_fn(out["color"], tg["y_color"])
-        for stage, loss in (("stage1", stage1), ("stage2", stage2)):
-            assert torch.isfinite(loss), f"{kind}/{loss_name}/{case}: {stage} loss {loss.item()}"
-        (stage1 + stage2).backward()
-        for pname, p in m.named_parameters():
-            assert p.grad is not None and torch.isfinite(p.grad).all(), f"{kind}/{loss_name}/{case}: non-finite grad in {pname}"
+        out = m({k: batch[k] for k in (*spec.branches, "albedo")})
+        total = 0.0
+        for i, case in enumerate(cases):
+            part = slice(i * len(crops), (i + 1) * len(crops))
+            stage1 = sum(loss_fn(out[b][part], batch[f"y_{b}"][part]) for b in spec.branches)
+            stage2 = loss_fn(out["color"][part], batch["y_color"][part])
+            for stage, loss in (("stage1", stage1), ("stage2", stage2)):
+                assert torch.isfinite(loss), f"{variant}/{loss_name}/{case}: {stage} loss {loss.item()}"
+            total = total + stage1 + stage2
+        total.backward()
+
+    step(list(batches))
+    if _bad_grads(m):  # name the cases that give them
+        culprits = {}
+        for case in batches:
+            step([case])
+            if _bad_grads(m):
+                culprits[case] = _bad_grads(m)
+        pytest.fail(f"{variant}/{loss_name}: missing or non-finite gradients {culprits or _bad_grads(m)}")

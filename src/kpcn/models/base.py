@@ -18,6 +18,15 @@ model is only what it declares here:
   receptive radius gives exactly zero (kernel predictors: a convex
   combination of zeros is zero), so tiles or frames where it is zero may skip
   it without changing the result.
+* ``kernel_padding`` — kernel predictors: how their kernels (weights summing
+  to one) see beyond the frame border, ``"replicate"`` (border pixels
+  repeated, so a constant image comes back unchanged) or ``"zeros"``; ``None``
+  for a model that predicts no kernels;
+* ``convex_kernels`` — each branch's output pixel is a convex combination of
+  the branch's noisy colour over its ``kernel_size x kernel_size``
+  neighbourhood, padded as ``kernel_padding`` says, so it lies in that
+  neighbourhood's per-channel range (single-scale kernel predictors; not a
+  multi-scale reconstruction, which adds coarse-minus-fine corrections).
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
@@ -47,6 +56,10 @@ class DenoiserModel(nn.Module):
     zero_preserving: bool = False
     #: the model uses a whole-frame summary (see :meth:`frame_context`)
     uses_frame_context: bool = False
+    #: border padding of the kernels ("replicate" or "zeros"; None: the model predicts no kernels)
+    kernel_padding: str | None = None
+    #: each branch output is a convex combination of its noisy colour over the ``kernel_size``² neighbourhood
+    convex_kernels: bool = False
 
     def __init__(self, config: Any) -> None:
         super().__init__()

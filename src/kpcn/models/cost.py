@@ -27,6 +27,9 @@ def macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float
     total = [0]
 
     def conv_hook(mod: nn.Conv2d, args, out):
+        if hasattr(mod, "macs"):  # a conv that counts its own work (e.g. one that runs partly at low resolution)
+            total[0] += mod.macs(*args, out)
+            return
         kh, kw = mod.kernel_size
         total[0] += out.numel() // out.shape[0] * (mod.in_channels // mod.groups) * kh * kw
 

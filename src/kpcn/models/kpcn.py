@@ -338,6 +338,8 @@ class Denoiser(DenoiserModel):
         super().__init__(config if config is not None else BranchConfig())
         self.kind = self.name = kind
         self.zero_preserving = kind == "kpcn"  # a convex combination of zeros is zero
+        self.convex_kernels = kind == "kpcn"  # softmax weights over the k x k neighbourhood
+        self.kernel_padding = self.config.padding_mode if kind == "kpcn" else None
         cls = _BRANCHES[kind]
         for b in self.branches:
             self.add_module(b, cls(self.config))

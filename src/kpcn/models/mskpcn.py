@@ -126,7 +126,7 @@ class MSKPCNBranch(nn.Module):
         with torch.no_grad():
             self.tail[-1].weight.mul_(cfg.out_init_gain)
             self.tail[-1].bias.copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
-        self.apply_kernels = KernelApply(k, "replicate")
+        self.apply_kernels = KernelApply(k, MSKPCN.kernel_padding)
 
     def kernels(self, x: torch.Tensor) -> torch.Tensor:
         """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous)."""
@@ -143,6 +143,8 @@ class MSKPCN(DenoiserModel):
     """Multi-scale residual KPCN, one branch per branch of the input spec (see the module docstring)."""
 
     zero_preserving = True  # kernels only average the branch colour (replicate padding)
+    convex_kernels = True  # one softmax kernel a pixel, applied to the noisy branch colour
+    kernel_padding = "replicate"
 
     def __init__(self, config: MSKPCNConfig) -> None:
         super().__init__(config)

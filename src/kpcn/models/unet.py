@@ -78,7 +78,12 @@ class UNetConfig:
         input_transform: ``log`` (signed log1p of the features), ``logvar`` or ``none``.
         kernel_scales: levels with kernels, finest first (1: one full-resolution kernel;
             ``n > 1``: Vogels et al.'s multi-scale reconstruction over the ``n`` finest levels,
-            at most ``len(widths) - 1``).
+            at most ``len(widths) - 1``, or ``len(widths)`` with ``stem: half``).
+        stem: ``full``: the first level runs at full resolution; ``half``: the network starts on
+            the features average-pooled 2×2 (every level at half the resolution, a quarter of the
+            multiply-adds), and the full-resolution kernels come from the finest decoder level
+            upsampled (bilinear) beside a 1×1 ``guide`` of the full-resolution features.
+        guide_channels: ``stem: half``: width of the full-resolution guide.
     """
 
     input_spec: str = "kpcn_split"
@@ -91,6 +96,8 @@ class UNetConfig:
     out_init_gain: float = 0.1
     input_transform: str = "log"
     kernel_scales: int = 1
+    stem: str = "full"
+    guide_channels: int = 8
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -100,9 +107,14 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.convs_per_level must be >= 1, got {self.convs_per_level}")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise ValueError(f"UNetConfig.kernel_size must be a positive odd integer, got {self.kernel_size}")
-        if not 1 <= self.kernel_scales <= max(1, len(self.widths) - 1):
-            raise ValueError(f"UNetConfig.kernel_scales must be in 1..{max(1, len(self.widths) - 1)} "
-                             f"(len(widths) - 1), got {self.kernel_scales}")
+        if self.stem not in ("full", "half"):
+            raise ValueError(f"UNetConfig.stem must be 'full' or 'half', got {self.stem!r}")
+        top = max(1, len(self.widths) - 1 + self.offset)
+        if not 1 <= self.kernel_scales <= top:
+            raise ValueError(f"UNetConfig.kernel_scales must be in 1..{top} (len(widths) - 1, or len(widths) "
+                             f"with stem: half), got {self.kernel_scales}")
+        if self.stem == "half" and self.guide_channels < 1:
+            raise ValueError(f"UNetConfig.guide_channels must be >= 1 with stem: half, got {self.guide_channels}")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
@@ -113,16 +125,22 @@ class UNetConfig:
             raise ValueError("UNetConfig.input_transform 'logvar' needs the kpcn_split input spec")
 
     @property
+    def offset(self) -> int:
+        """Resolution levels below full of the network's first level (``stem: half``: 1)."""
+        return 1 if self.stem == "half" else 0
+
+    @property
     def alignment(self) -> int:
-        return 2 ** (len(self.widths) - 1)
+        return 2 ** (len(self.widths) - 1 + self.offset)
 
     @property
     def network_radius(self) -> int:
         c = self.convs_per_level
-        scales = [2**level for level in range(len(self.widths))]
+        scales = [2 ** (level + self.offset) for level in range(len(self.widths))]
         encoder = c * sum(scales)
         decoder = sum(s * (1 + c) for s in scales[:-1])
-        return encoder + decoder
+        # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution
+        return encoder + decoder + (3 if self.offset else 0)
 
     @property
     def kernel_radius(self) -> int:
@@ -163,13 +181,17 @@ class UNetBranch(nn.Module):
         k, n = cfg.kernel_size, cfg.kernel_scales
         # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
         # every level but the coarsest adds one blending-weight channel
-        self.head = self._make_head(w[0], k * k + (1 if n > 1 else 0))
-        self.heads = nn.ModuleList(self._make_head(w[lv], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
+        off = cfg.offset
+        self.guide = nn.Conv2d(c_in, cfg.guide_channels, 1) if off else None
+        self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), k * k + (1 if n > 1 else 0),
+                                    GuidedHead if off else nn.Conv2d)
+        # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
+        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
 
-    def _make_head(self, width: int, out: int) -> nn.Conv2d:
+    def _make_head(self, width: int, out: int, kind=nn.Conv2d) -> nn.Conv2d:
         k, cfg = self.cfg.kernel_size, self.cfg
-        head = nn.Conv2d(width, out, 1)
+        head = kind(width, out, 1)
         nn.init.kaiming_normal_(head.weight, nonlinearity="linear")
         with torch.no_grad():
             head.weight.mul_(cfg.out_init_gain)
@@ -184,7 +206,10 @@ class UNetBranch(nn.Module):
 
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Encoder features of every level, finest first (input padded to the alignment)."""
-        h = self._pad(transform_input(x, self.cfg.input_transform))
+        if self.cfg.offset:  # pool the linear features, then transform them
+            h = transform_input(F.avg_pool2d(self._pad(x), 2), self.cfg.input_transform)
+        else:
+            h = self._pad(transform_input(x, self.cfg.input_transform))
         feats = []
         for level, block in enumerate(self.enc):
             if level:
@@ -221,13 +246,16 @@ class UNetBranch(nn.Module):
         for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
             h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
             decoded[level] = h
-        s, kk = self.cfg.logit_scale, self.cfg.kernel_size**2
+        s, kk, off = self.cfg.logit_scale, self.cfg.kernel_size**2, self.cfg.offset
+        if off:  # full resolution: the finest level upsampled, beside the guide of the full-resolution features
+            guide = F.relu(self.guide(self._pad(transform_input(x, self.cfg.input_transform))))
+            h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
             return torch.softmax(logits, dim=1).contiguous()
         kernels, alphas = [], []
         for level in range(self.cfg.kernel_scales):
-            z = (self.head if level == 0 else self.heads[level - 1])(decoded[level])
+            z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
             kernels.append(torch.softmax(torch.tanh(z[:, :kk] / s) * s, dim=1).contiguous())
             alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
         return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in))
@@ -269,10 +297,35 @@ class MultiScaleApply(nn.Module):
         return out[..., :h, :w]
 
 
+class GuidedHead(nn.Conv2d):
+    """The ``stem: half`` head: a 1×1 conv of ``[bilinear_up2(coarse), guide]``, computed as
+    ``bilinear_up2(W_c · coarse + b) + W_g · guide``.
+
+    The same function (a 1×1 conv is per-pixel affine, and bilinear weights sum to one, so the
+    two commute) and the same parameters as an ``nn.Conv2d`` on the concatenation, but the
+    coarse part runs at half resolution and no full-resolution concatenation is built.
+    ``forward`` takes the pair ``(coarse (B, Cc, h, w), guide (B, Cg, 2h, 2w))``.
+    """
+
+    def forward(self, pair):  # type: ignore[override]
+        coarse, guide = pair
+        c = coarse.shape[1]
+        low = F.conv2d(coarse, self.weight[:, :c], self.bias)
+        up = F.interpolate(low, scale_factor=2, mode="bilinear", align_corners=False)
+        return up + F.conv2d(guide, self.weight[:, c:])
+
+    def macs(self, pair, out) -> int:
+        """Multiply-adds of one call per image (for :func:`kpcn.models.cost.macs_per_pixel`)."""
+        coarse, guide = pair
+        n_out = self.out_channels
+        return (coarse[0, 0].numel() * coarse.shape[1] + guide[0, 0].numel() * guide.shape[1]) * n_out
+
+
 class UNetKPCN(DenoiserModel):
     """Kernel-predicting U-Net, one per branch of the input spec (see the module docstring)."""
 
     zero_preserving = True
+    kernel_padding = "replicate"  # every level's kernels, and the padding to the alignment
 
     def __init__(self, config: UNetConfig) -> None:
         super().__init__(config)
@@ -289,6 +342,11 @@ class UNetKPCN(DenoiserModel):
     @property
     def alignment(self) -> int:
         return self.config.alignment
+
+    @property
+    def convex_kernels(self) -> bool:
+        """One full-resolution kernel: convex; the multi-scale combination ``f + α·U(o - D f)`` is not."""
+        return self.config.kernel_scales == 1
 
     def frame_context(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
         """Each present branch's global summary over the whole frame ``{branch: (B, S, 1, 1)}``."""
