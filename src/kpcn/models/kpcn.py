@@ -194,7 +194,7 @@ def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
     """
     if kind == "none":
         return x
-    y = torch.sign(x) * torch.log1p(x.abs())
+    y = x.abs().log1p_().copysign_(x)  # sign(x) log1p(|x|) with one temporary (frames are large)
     if kind == "logvar" and x.shape[1] > max(VARIANCE_CHANNELS):
         idx = list(VARIANCE_CHANNELS)
         y = y.clone()

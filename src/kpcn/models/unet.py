@@ -251,14 +251,21 @@ class UNetBranch(nn.Module):
             guide = F.relu(self.guide(self._pad(transform_input(x, self.cfg.input_transform))))
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
-            logits = torch.tanh(self.head(h)[..., :h_in, :w_in] / s) * s
-            return torch.softmax(logits, dim=1).contiguous()
+            return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
         kernels, alphas = [], []
         for level in range(self.cfg.kernel_scales):
             z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
-            kernels.append(torch.softmax(torch.tanh(z[:, :kk] / s) * s, dim=1).contiguous())
+            kernels.append(_bounded_softmax(z[:, :kk], s))
             alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
         return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in))
+
+
+def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
+    """``softmax(s * tanh(z / s))`` over channels, contiguous; in place where no gradient is needed."""
+    if torch.is_grad_enabled() and z.requires_grad:
+        return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
+    t = z / s
+    return torch.softmax(t.tanh_().mul_(s), dim=1).contiguous()
 
 
 @dataclass(frozen=True)
