@@ -134,3 +134,21 @@ def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_data
     assert val == val2 and len(more) == len(plain) + len(extra)
     assert {p.scene for p in extra} == {p.scene for p in plain}
     assert all(p.input_path == p.reference_path for p in extra)
+
+
+def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tmp_path):
+    from kpcn.render import DatasetError, render_dataset
+    from kpcn.train_data import split_pairs
+
+    other = tmp_path / "other"
+    render_dataset(other, n_scenes=2, spp_list=(4, 8), ref_spp=32, resolution=(32, 32), first_seed=500, progress=False)
+    cfg = tiny_cfg(tiny_dataset, tmp_path)
+    base_train, base_val = split_pairs(cfg, progress=False)
+    cfg.data.extra_roots = [str(other)]
+    train_pairs, val_pairs = split_pairs(cfg, progress=False)
+    scenes = {p.scene for p in train_pairs + val_pairs}
+    assert {p.scene for p in base_train + base_val} < scenes and len(scenes) == len({p.scene for p in base_train + base_val}) + 2
+    assert any(str(p.input_path).startswith(str(other)) for p in train_pairs + val_pairs)
+    cfg.data.extra_roots = [str(tiny_dataset)]
+    with pytest.raises(DatasetError, match="repeats scene names"):
+        split_pairs(cfg, progress=False)

@@ -39,6 +39,8 @@ def _positive(section: str, obj, key: str) -> None:
 @dataclass
 class DataConfig:
     root: str = "data/train"  #: folder written by `python -m kpcn.render dataset`
+    #: more rendered data sets trained on with root (scene names must differ: render with another --first-seed)
+    extra_roots: list[str] = field(default_factory=list)
     val_root: str | None = None  #: held-out frames; None: the last `val_scenes` scenes of root
     val_scenes: int = 2
     spp: list[int] | None = None  #: input spp to train on (None: all)

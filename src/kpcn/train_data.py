@@ -55,11 +55,23 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
 
 
 def split_pairs(cfg: RunConfig, progress: bool = True):
-    """``(train_pairs, val_pairs)``: the validation frames are ``data.val_root``'s or the last ``data.val_scenes`` scenes."""
+    """``(train_pairs, val_pairs)``: the validation frames are ``data.val_root``'s or the last ``data.val_scenes``
+    scenes (by name) of ``data.root`` and ``data.extra_roots`` together."""
     from .render import DatasetError
 
     root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
     pairs = read_manifest(root, cfg.data.spp)
+    for extra in cfg.data.extra_roots:  # more rendered data sets (complete ones; never rendered here)
+        try:
+            more = read_manifest(extra, cfg.data.spp)
+        except FileNotFoundError as exc:
+            raise DatasetError(f"data.extra_roots: {exc}") from None
+        clash = sorted({p.scene for p in more} & {p.scene for p in pairs})
+        if clash:
+            raise DatasetError(f"data.extra_roots: {extra} repeats scene names of the other data sets "
+                               f"({', '.join(clash[:5])}{' ...' if len(clash) > 5 else ''}); render it with "
+                               f"another --first-seed")
+        pairs += more
     if cfg.data.val_root:
         try:
             val_pairs = read_manifest(cfg.data.val_root, cfg.data.spp)
