@@ -94,4 +94,7 @@ def test_a_file_with_only_colour_albedo_normal_gets_the_shipped_model_for_it(ren
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         full = denoise_result(noisy, None, device="cpu")
-    assert "kpcn_small" in full.model_name
+    from kpcn.inference import DEFAULT_MODEL
+    from kpcn.models import weights_entry
+
+    assert weights_entry(DEFAULT_MODEL).path.name in full.model_name

@@ -252,9 +252,9 @@ def test_load_model_errors(tmp_path):
             dn.load_model("dpcn")
     else:
         assert dn.load_model("dpcn", device="cpu").name == "dpcn"
-    # a registered model without shipped weights (was: dpcn before it shipped any)
-    with pytest.raises(dn.DefaultWeightsMissing, match=r"no shipped weights unet_kpcn:<default>; shipped: .*kpcn\.train"):
-        dn.load_model("unet_kpcn")
+    # a registered model without shipped weights (was: dpcn, then unet_kpcn, before they shipped any)
+    with pytest.raises(dn.DefaultWeightsMissing, match=r"no shipped weights mskpcn:<default>; shipped: .*kpcn\.train"):
+        dn.load_model("mskpcn")
     with pytest.raises(FileNotFoundError, match=r"nope\.pt: neither a weights file nor a registered model name"):
         dn.load_model(str(tmp_path / "nope.pt"))
     bad = tmp_path / "bad.pt"

@@ -57,7 +57,7 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kpcn import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
-from .registry import register_model
+from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
 
@@ -379,3 +379,8 @@ class UNetKPCN(DenoiserModel):
 def unet_kpcn(config: UNetConfig) -> UNetKPCN:
     """Kernel-predicting U-Net with a global summary; fields of :class:`UNetConfig`."""
     return UNetKPCN(config)
+
+
+register_weights("unet_kpcn", "fast", "unet_fast.safetensors", default=True,
+                 description="U-Net at half resolution, multi-scale 5x5 kernels, 26 k multiply-adds per pixel "
+                             "(configs/unet_fast.yaml), 28 procedural scenes + their converged references")
