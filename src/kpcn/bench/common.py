@@ -64,3 +64,39 @@ def _ratio(a: dict, b: dict, key: str) -> str:
     return f"{a[key] / den:.1f}x"
 
 
+
+
+def _isolated_worker(conn, fn, *args) -> None:
+    try:
+        result = fn(*args)
+    except BaseException as exc:  # report, do not hang the parent
+        result = {"status": f"failed: {type(exc).__name__}: {exc}"}
+    conn.send(result)
+    conn.close()
+
+
+def run_isolated(fn, args: tuple, timeout: float) -> dict:
+    """``fn(*args)`` (a module-level function returning a dict) in a fresh spawned process, so its memory
+    is its own; stopped after ``timeout`` s. A timeout or a dead worker gives ``{"status": ...}``."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_isolated_worker, args=(send, fn, *args))
+    proc.start()
+    send.close()
+    result = None
+    try:
+        if recv.poll(timeout):
+            result = recv.recv()
+    except EOFError:  # the worker died without answering
+        result = None
+    if result is None:
+        alive = proc.is_alive()
+        if alive:
+            proc.terminate()  # the worker this call started
+        proc.join(10)
+        return {"status": f"timeout (> {timeout:.0f} s)" if alive
+                else f"failed (worker died, exit code {proc.exitcode}: out of memory?)"}
+    proc.join(10)
+    return result

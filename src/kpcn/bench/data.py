@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..config import parse_config
-from .common import _proc_status_kb
+from .common import _proc_status_kb, run_isolated
 
 
 @dataclass
@@ -112,36 +112,9 @@ def _measure(kind: str, root: str, store: str, spec: str, spp, workers: int, bat
             "anon_mb": _mb(anon), "file_mb": _mb(filed), "worker_peak_mb": _mb(child), "epochs": epoch}
 
 
-def _worker(conn, *args) -> None:
-    try:
-        result = _measure(*args)
-    except BaseException as exc:  # report, do not hang the parent
-        result = {"status": f"failed: {type(exc).__name__}: {exc}"}
-    conn.send(result)
-    conn.close()
-
-
 def _run(timeout: float, *args) -> dict:
     """:func:`_measure` in a fresh spawned process (its memory is its own), stopped after ``timeout`` s."""
-    ctx = mp.get_context("spawn")
-    recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_worker, args=(send, *args))
-    proc.start()
-    send.close()
-    result = None
-    try:
-        if recv.poll(timeout):
-            result = recv.recv()
-    except EOFError:
-        result = None
-    if result is None:
-        alive = proc.is_alive()
-        if alive:
-            proc.terminate()  # the process this call started
-        proc.join(10)
-        return {"status": f"timeout (> {timeout:.0f} s)" if alive else f"failed (exit code {proc.exitcode})"}
-    proc.join(10)
-    return result
+    return run_isolated(_measure, args, timeout)
 
 
 def _fmt(v, spec: str = ".0f") -> str:

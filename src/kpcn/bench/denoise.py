@@ -12,7 +12,6 @@ skipping what a scene does not need (see :mod:`kpcn.inference.pipeline`).
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import statistics
 import sys
@@ -22,7 +21,7 @@ import time
 from dataclasses import dataclass, field
 
 from ..config import parse_config, to_dict
-from .common import _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
+from .common import run_isolated, _peak_rss_kb, _proc_status_kb, _ratio, _reset_peak_rss
 
 # --------------------------------------------------------------------------- denoise
 #
@@ -192,37 +191,8 @@ def _oidn_set_threads(n: int) -> str:
         return f"default (could not set: {exc})"
 
 
-def _denoise_worker(conn, *args) -> None:
-    try:
-        result = _denoise_measure(*args)
-    except BaseException as exc:  # report, do not hang the parent
-        result = {"status": f"failed: {type(exc).__name__}: {exc}"}
-    conn.send(result)
-    conn.close()
-
-
 def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout) -> dict:
-    ctx = mp.get_context("spawn")
-    recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_denoise_worker, args=(send, impl, path, model_name, model_kw, tile, threads, repeats))
-    proc.start()
-    send.close()
-    result = None
-    try:
-        if recv.poll(timeout):
-            result = recv.recv()
-    except EOFError:  # the worker died without answering
-        proc.join(5)
-        result = None
-    if result is None:
-        alive = proc.is_alive()
-        if alive:
-            proc.terminate()  # the worker this call started
-        proc.join(10)
-        result = {"status": f"timeout (> {timeout:.0f} s)" if alive else f"failed (worker died, exit code {proc.exitcode}: out of memory?)"}
-    else:
-        proc.join(10)
-    return result
+    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats), timeout)
 
 
 def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
