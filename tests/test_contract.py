@@ -354,3 +354,9 @@ def test_multiply_adds_per_pixel_match_a_hand_count():
     unet = create_model("unet_kpcn", input_spec="color_albedo_normal", widths=[4, 6], convs_per_level=1,
                         kernel_size=3, summary_channels=0)
     assert macs_per_pixel(unet, 32, 32) == 9 * 4 * 9 + 4 * 6 * 9 / 4 + 10 * 4 * 9 + 4 * 9 + 3 * 9
+    # the same with stem: half: every 3x3 conv at a quarter of the pixels or fewer, a 9->2 1x1 guide at full
+    # resolution, the head's 4->9 part at half resolution and its 2->9 part at full
+    half = create_model("unet_kpcn", input_spec="color_albedo_normal", widths=[4, 6], convs_per_level=1,
+                        kernel_size=3, summary_channels=0, stem="half", guide_channels=2)
+    assert macs_per_pixel(half, 32, 32) == (9 * 4 * 9 / 4 + 4 * 6 * 9 / 16 + 10 * 4 * 9 / 4 + 9 * 2
+                                            + 4 * 9 / 4 + 2 * 9 + 3 * 9)
