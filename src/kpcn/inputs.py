@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from .constants import EPS
-from .features import branch_features, depth_scale_of
+from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of
 
 __all__ = [
     "InputSpec",
@@ -78,6 +78,8 @@ class InputSpec:
             and colour-like features, permuted together by :mod:`kpcn.augment`).
         grad_x, grad_y: ``(start, stop)`` of the channels that are forward
             differences in x / in y (in the same feature order), or None.
+        variance_channels: the channels of a branch tensor that are variances
+            (the patch store keeps them float32; the ``logvar`` transform logs them).
     """
 
     name: str
@@ -95,6 +97,7 @@ class InputSpec:
     rgb_starts: tuple[int, ...] = (0,)
     grad_x: tuple[int, int] | None = None
     grad_y: tuple[int, int] | None = None
+    variance_channels: tuple[int, ...] = ()
 
     def layers_for(self, branches) -> tuple[str, ...]:
         """The layers needed to build only ``branches``."""
@@ -191,6 +194,8 @@ def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
         # d/dy of the same 10, [variances of normal, albedo, depth]
         rgb_starts=(0, 4, 10, 14, 20) if variances else (0, 3, 9, 13, 19),
         grad_x=(4, 14) if variances else (3, 13), grad_y=(14, 24) if variances else (13, 23),
+        variance_channels=(*range(COLOR_VAR.start, COLOR_VAR.stop), *range(FEATURE_VAR.start, FEATURE_VAR.stop))
+        if variances else (),
     )
 
 

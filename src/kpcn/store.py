@@ -54,7 +54,6 @@ import numpy as np
 import torch
 
 from .config import ConfigError
-from .features import COLOR_VAR, FEATURE_VAR, N_FEATURES
 from .inputs import InputSpec, get_input_spec
 from .io import atomic_write
 
@@ -75,8 +74,6 @@ HALF_ATOL = 2.0 ** -25
 #: None: an eighth of the process's file-descriptor limit (two maps a frame: a quarter of it)
 MAX_OPEN: int | None = None
 ENTRY = "entry.json"
-#: the variance channels of the 27-channel split features (kpcn.features)
-_VARIANCE_CHANNELS = (*range(COLOR_VAR.start, COLOR_VAR.stop), *range(FEATURE_VAR.start, FEATURE_VAR.stop))
 
 
 class StoreError(ConfigError):
@@ -91,14 +88,13 @@ def default_store_dir(root: str | os.PathLike, spec: InputSpec | str) -> Path:
 def float32_channels(spec: InputSpec, key: str, channels: int) -> np.ndarray:
     """Boolean mask over the ``channels`` of tensor ``key``: True where the store keeps float32.
 
-    Branch tensors: float32 only for the variance channels of the 27-channel
-    split features; the albedo: none; targets, ``noisy_color`` and any other key: all.
+    Branch tensors: float32 only for the spec's ``variance_channels``; the albedo:
+    none; targets, ``noisy_color`` and any other key: all.
     """
     mask = np.ones(channels, bool)
     if key in spec.branches:
         mask[:] = False
-        if channels == N_FEATURES and any(n.endswith("Variance") for n in spec.layers):
-            mask[list(_VARIANCE_CHANNELS)] = True
+        mask[list(spec.variance_channels)] = True
     elif key == "albedo":
         mask[:] = False
     return mask

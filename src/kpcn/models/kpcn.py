@@ -180,7 +180,7 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
-VARIANCE_CHANNELS = (3, 24, 25, 26)
+VARIANCE_CHANNELS = get_input_spec("kpcn_split").variance_channels  # (3, 24, 25, 26)
 VARIANCE_FLOOR = 1e-6
 
 
