@@ -165,3 +165,15 @@ def test_clear_error_without_llvm(monkeypatch):
     monkeypatch.setattr(dr.detail, "llvm_version", lambda: (16, 0, 6))
     with pytest.raises(R.RendererUnavailable, match="libllvm19"):
         R.ensure_variant()
+
+
+def test_variant_choice_is_checked(monkeypatch):
+    from kpcn.render.scene import RendererUnavailable, chosen_variant
+
+    monkeypatch.delenv("KPCN_MITSUBA_VARIANT", raising=False)
+    assert chosen_variant() == "llvm_ad_rgb"
+    monkeypatch.setenv("KPCN_MITSUBA_VARIANT", "cuda_ad_rgb")
+    assert chosen_variant() == "cuda_ad_rgb"
+    monkeypatch.setenv("KPCN_MITSUBA_VARIANT", "scalar_spectral")
+    with pytest.raises(RendererUnavailable, match="KPCN_MITSUBA_VARIANT.*llvm_ad_rgb, cuda_ad_rgb"):
+        chosen_variant()

@@ -29,6 +29,9 @@ from ..integrator import register
 log = logging.getLogger("kpcn.render")
 
 VARIANT = "llvm_ad_rgb"
+#: variants kpcn renders with: the CPU default, or Mitsuba's CUDA/OptiX one on a machine with an NVIDIA GPU
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+VARIANT_ENV = "KPCN_MITSUBA_VARIANT"
 LLVM_HELP = (
     "Mitsuba's llvm_ad_rgb variant needs LLVM >= 17 (LLVM 15/16 crash on the first render). "
     "On Debian/Ubuntu install it with: sudo apt-get install -y libllvm19 "
@@ -51,20 +54,34 @@ class SceneError(ValueError):
     """A scene that cannot be loaded, or that kpcn cannot render faithfully (one-line message naming it)."""
 
 
+def chosen_variant() -> str:
+    """The Mitsuba variant to render with: ``$KPCN_MITSUBA_VARIANT`` if set (one of :data:`VARIANTS`),
+    else ``llvm_ad_rgb``. Both give the same estimator (same integrator and sampler), not the same bits."""
+    name = os.environ.get(VARIANT_ENV, "").strip() or VARIANT
+    if name not in VARIANTS:
+        raise RendererUnavailable(f"{VARIANT_ENV}={name!r} is not a variant kpcn renders with: "
+                                  f"use one of {', '.join(VARIANTS)}")
+    return name
+
+
 def ensure_variant():
-    """Select ``llvm_ad_rgb`` and check the LLVM that Dr.Jit found; return ``mitsuba``."""
+    """Select the variant (:func:`chosen_variant`), check the LLVM that Dr.Jit found for the
+    LLVM one, register kpcn's integrator; return ``mitsuba``."""
     import mitsuba as mi
 
-    if mi.variant() != VARIANT:
+    name = chosen_variant()
+    if mi.variant() != name:
         try:
-            mi.set_variant(VARIANT)
-        except Exception as exc:  # drjit raises when it finds no libLLVM at all
-            raise RendererUnavailable(f"cannot select {VARIANT}: {exc}. {LLVM_HELP}") from exc
-    import drjit as dr
+            mi.set_variant(name)
+        except Exception as exc:  # drjit raises when it finds no libLLVM (or no CUDA) at all
+            hint = LLVM_HELP if name.startswith("llvm") else "it needs an NVIDIA GPU and driver (with OptiX)"
+            raise RendererUnavailable(f"cannot select {name}: {exc}. {hint}") from exc
+    if name.startswith("llvm"):
+        import drjit as dr
 
-    version = tuple(dr.detail.llvm_version())
-    if version < (17,):
-        raise RendererUnavailable(f"found LLVM {'.'.join(map(str, version))}. {LLVM_HELP}")
+        version = tuple(dr.detail.llvm_version())
+        if version < (17,):
+            raise RendererUnavailable(f"found LLVM {'.'.join(map(str, version))}. {LLVM_HELP}")
     register()
     return mi
 

@@ -11,22 +11,13 @@ import numpy as np
 
 
 def _mi():
-    """Return the ``mitsuba`` module with a variant set (default llvm_ad_rgb)."""
+    """Return the ``mitsuba`` module with kpcn's variant set (see :func:`kpcn.render.scene.ensure_variant`)."""
     import mitsuba as mi
 
     if mi.variant() is None:
-        mi.set_variant("llvm_ad_rgb")
-        import drjit as dr
+        from ..render.scene import ensure_variant
 
-        try:
-            ver = tuple(dr.detail.llvm_version())
-        except Exception:  # pragma: no cover - API differences
-            ver = None
-        if ver is not None and ver[0] < 17:
-            raise RuntimeError(
-                f"Mitsuba's llvm_ad_rgb variant needs LLVM >= 17, found {ver}. "
-                "Install LLVM 19 (Debian/Ubuntu: `apt-get install -y libllvm19`)."
-            )
+        ensure_variant()
     return mi
 
 
