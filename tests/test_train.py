@@ -152,3 +152,32 @@ def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tm
     cfg.data.extra_roots = [str(tiny_dataset)]
     with pytest.raises(DatasetError, match="repeats scene names"):
         split_pairs(cfg, progress=False)
+
+
+def test_init_starts_from_given_weights_and_refuses_other_models(tiny_dataset, tmp_path):
+    from kpcn.config import ConfigError
+
+    first = train(tiny_cfg(tiny_dataset, tmp_path, name="a", stage1_steps=3, stage2_steps=0), progress=False)
+    assert first["losses"]
+    src = tmp_path / "a" / "model.safetensors"
+    trained = read_weights(src)[1]
+    # one step at a negligible rate: the fine-tuned weights are the file's, not a fresh initialisation
+    cfg = tiny_cfg(tiny_dataset, tmp_path, name="b", stage1_steps=1, stage2_steps=0, lr=1e-12, init=str(src))
+    train(cfg, progress=False)
+    tuned = read_weights(tmp_path / "b" / "model.safetensors")[1]
+    fresh_cfg = tiny_cfg(tiny_dataset, tmp_path, name="c", stage1_steps=1, stage2_steps=0, lr=1e-12, seed=5)
+    train(fresh_cfg, progress=False)
+    fresh = read_weights(tmp_path / "c" / "model.safetensors")[1]
+    assert all(torch.allclose(tuned[k], trained[k], atol=1e-6) for k in trained)
+    assert not all(torch.allclose(fresh[k], trained[k], atol=1e-3) for k in trained)
+    # other hyper-parameters, another model, a missing file: ConfigError naming what differs
+    wide = tiny_cfg(tiny_dataset, tmp_path, name="d", stage1_steps=1, init=str(src))
+    wide.model["width"] = 16
+    with pytest.raises(ConfigError, match="width"):
+        train(wide, progress=False)
+    with pytest.raises(ConfigError, match="unet_kpcn"):
+        train(tiny_cfg(tiny_dataset, tmp_path, name="e", stage1_steps=1, init="unet_kpcn:fast"), progress=False)
+    with pytest.raises(ConfigError, match="no weights file"):
+        train(tiny_cfg(tiny_dataset, tmp_path, name="f", stage1_steps=1, init=str(tmp_path / "nope.safetensors")),
+              progress=False)
+    assert not (tmp_path / "d").exists() or not (tmp_path / "d" / "model.safetensors").exists()

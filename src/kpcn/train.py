@@ -106,6 +106,33 @@ log = logging.getLogger("kpcn.train")
 
 __all__ = ["train", "build_model", "main", "RunConfig", "RunFolderError"]
 
+def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
+    """Load ``cfg.train.init`` (a weights file or a shipped ``model:tag``) into ``model``; the file's
+    model and the hyper-parameters the config sets must agree (:class:`ConfigError` otherwise)."""
+    from .checkpoint import read_weights
+    from .models.registry import weights_entry
+
+    init = cfg.train.init
+    path = Path(init)
+    if not path.is_file() and ":" in init and "/" not in init:
+        name, tag = init.split(":", 1)
+        try:
+            path = weights_entry(name, tag or None).path
+        except KeyError as exc:
+            raise ConfigError(f"train.init: {exc.args[0]}") from None
+    elif not path.is_file():
+        raise ConfigError(f"train.init: no weights file {init!r} (a .safetensors path or a shipped model:tag)")
+    record, weights = read_weights(path)
+    want = to_dict(cfg)["model"]
+    mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
+                if k != "name" and record["hparams"].get(k) != v}
+    if record["model"] != want.get("name") or mismatch:
+        raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
+                          f"config's {want.get('name')} (file, config): {mismatch}")
+    model.load_state_dict({k: v.to(torch.float32) for k, v in weights.items()})
+    return str(path)
+
+
 def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pickle: bool = False,
           overwrite: bool = False) -> dict:
     """Run training for ``cfg``; returns a summary (final step, last losses, last validation).
@@ -185,8 +212,13 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         _restore_optimizer(optimizer, state, source)
         if d.main:
             log.info("resumed from %s at step %d", source, step)
-    elif resume and d.main:
-        log.info("no checkpoint in %s: starting from scratch", ckpt_dir)
+    else:
+        if resume and d.main:
+            log.info("no checkpoint in %s: starting from scratch", ckpt_dir)
+        if cfg.train.init:
+            source = _load_init(model, cfg)
+            if d.main:
+                log.info("initialised from %s", source)
 
     ddp = model
     if d.world > 1:

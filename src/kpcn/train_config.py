@@ -106,6 +106,10 @@ class TrainConfig:
     seed: int = 0
     threads: int | None = None  #: torch CPU threads (None: PyTorch's default)
     device: str = "auto"  #: auto, cpu or cuda
+    #: weights to start from (fine-tuning): a kpcn ``.safetensors`` file or a shipped ``model:tag``;
+    #: its model and hyper-parameters must be the config's. None: random initialisation. A resumed
+    #: run continues from its checkpoint instead.
+    init: str | None = None
 
     def __post_init__(self) -> None:
         from .losses import list_losses
