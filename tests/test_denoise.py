@@ -240,7 +240,9 @@ def test_load_model_from_checkpoint_and_cache(tmp_path, render, fname):
     np.testing.assert_array_equal(dn.denoise(frame, str(path), tile=16), dn.denoise(frame, model, tile=16))
 
 
-def test_load_model_errors(tmp_path):
+def test_load_model_errors(tmp_path, monkeypatch):
+    from kpcn.models import registry
+
     default = weights_entry(dn.DEFAULT_MODEL).path
     if not default.exists():
         with pytest.raises(dn.DefaultWeightsMissing, match="kpcn.train"):
@@ -252,7 +254,10 @@ def test_load_model_errors(tmp_path):
             dn.load_model("dpcn")
     else:
         assert dn.load_model("dpcn", device="cpu").name == "dpcn"
-    # a registered model without shipped weights (was: dpcn, then unet_kpcn, before they shipped any)
+    # a registered model without shipped weights (every built-in model ships some now: take mskpcn's away)
+    registry._ensure_builtin_models()
+    monkeypatch.setitem(registry._WEIGHTS, "mskpcn", {})
+    monkeypatch.delitem(registry._DEFAULT_WEIGHTS, "mskpcn", raising=False)
     with pytest.raises(dn.DefaultWeightsMissing, match=r"no shipped weights mskpcn:<default>; shipped: .*kpcn\.train"):
         dn.load_model("mskpcn")
     with pytest.raises(FileNotFoundError, match=r"nope\.pt: neither a weights file nor a registered model name"):
