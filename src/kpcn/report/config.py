@@ -44,7 +44,7 @@ class ReportConfig:
     ref_spp: int = 2048
     converged_spp: int = 1024  #: spp of the converged input every method is also run on (0: none)
     resolution: tuple[int, int] = (256, 256)
-    models: list[str] = field(default_factory=lambda: ["unet_kpcn", "kpcn", "dpcn"])
+    models: list[str] = field(default_factory=lambda: ["unet_kpcn", "mskpcn", "kpcn", "dpcn"])
     oidn: bool = True  #: include OIDN when pyoidn imports
     out: str = "results/report"
     name: str = "default"
