@@ -248,7 +248,9 @@ class UNetBranch(nn.Module):
             decoded[level] = h
         s, kk, off = self.cfg.logit_scale, self.cfg.kernel_size**2, self.cfg.offset
         if off:  # full resolution: the finest level upsampled, beside the guide of the full-resolution features
-            guide = F.relu(self.guide(self._pad(transform_input(x, self.cfg.input_transform))))
+            # a 1x1 conv and a ReLU are per pixel, so they commute with replicate padding: pad the
+            # guide's few channels rather than the full-resolution features
+            guide = self._pad(F.relu(self.guide(transform_input(x, self.cfg.input_transform))))
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
