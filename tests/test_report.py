@@ -385,3 +385,28 @@ def test_oidn_wrapper_handles_pyoidn_input_rules():
     assert oidn_denoise(color[..., :1].repeat(3, -1)).shape == (16, 20, 3)
     with pytest.raises(ValueError, match="shape"):
         oidn_denoise(color, albedo[:8])
+
+
+def test_cycles_scene_in_the_report_and_models_that_cannot_read_it(tmp_path):
+    """A Blender Cycles scene rendered for real: the novar model's rows are there, the renders are cached
+    (a second run renders nothing), and a model needing variance layers is refused by name."""
+    from kpcn.render.cycles import blender_available
+    from kpcn.report.methods import MissingLayersError
+
+    if not blender_available():
+        pytest.skip("Blender's Python module bpy is not installed (pip install 'kpcn[blender]')")
+    kw = dict(out=str(tmp_path), name="cyc", scenes=["cycles:generated"], spp=[2, 8], ref_spp=64, converged_spp=16,
+              resolution=(24, 24), oidn=False)
+    cfg = ReportConfig(**kw, models=["kpcn:novar_small"])
+    first = run_report(cfg)
+    rows = [r for r in _csv_rows(first.paths["csv"]) if r["method"] == "kpcn:novar_small"]
+    assert {(r["scene"], int(r["spp"])) for r in rows} == {("cycles:generated", 2), ("cycles:generated", 8)}
+    assert all(math.isfinite(float(r["relmse"])) for r in rows)
+    # Cycles at 2 spp is noisier than at 8 against the same reference
+    mc = {int(r["spp"]): float(r["relmse"]) for r in _csv_rows(first.paths["csv"]) if r["method"] == MC}
+    assert mc[2] > mc[8]
+    assert len(first.rendered) == 4  # 2 inputs, the converged input, the reference
+    again = run_report(cfg)
+    assert again.rendered == []
+    with pytest.raises(MissingLayersError, match=r"kpcn:small needs diffuseVariance.*kpcn:novar_small"):
+        run_report(ReportConfig(**kw, models=["kpcn:small"]))

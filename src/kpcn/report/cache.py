@@ -12,6 +12,23 @@ from ..render.record import update_hash
 from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
 
 _NAMED = ("test:", "random:", "file:")  #: scene names (not paths): test scenes, procedural seeds, shipped XML files
+CYCLES = "cycles:"  #: Blender Cycles scenes: ``cycles:generated`` (kpcn's generated scene) or ``cycles:<file.blend>``
+CYCLES_GENERATED = "cycles:generated"
+
+
+def is_cycles(scene: Any) -> bool:
+    return isinstance(scene, (str, os.PathLike)) and os.fspath(scene).startswith(CYCLES)
+
+
+def cycles_blend(scene: Any) -> Path | None:
+    """The ``.blend`` of a ``cycles:`` scene (None: the generated scene)."""
+    s = os.fspath(scene)
+    return None if s == CYCLES_GENERATED else Path(s[len(CYCLES):])
+
+
+def cycles_seed(seed: int, role: int) -> int:
+    """Cycles' ``scene.cycles.seed`` for a report render: independent per (report seed, render role)."""
+    return (seed * 100_003 + role) % (2**31 - 1)
 
 
 def scene_slug(scene: Any) -> str:
@@ -19,8 +36,11 @@ def scene_slug(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict")).replace(":", "_").replace("/", "_")
     s = os.fspath(scene)
-    if s.startswith(_NAMED):
+    if s.startswith(_NAMED) or s == CYCLES_GENERATED:
         return s.replace(":", "_")
+    if s.startswith(CYCLES):
+        p = cycles_blend(s).resolve()
+        return f"cycles_{p.stem}_{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
     p = Path(s).resolve()
     return f"{p.stem}_{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
 
@@ -30,7 +50,9 @@ def scene_label(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict"))
     s = os.fspath(scene)
-    return s if s.startswith(_NAMED) else Path(s).stem
+    if s.startswith(CYCLES) and s != CYCLES_GENERATED:
+        return f"cycles:{cycles_blend(s).stem}"
+    return s if s.startswith(_NAMED + (CYCLES,)) else Path(s).stem
 
 
 @dataclass
@@ -72,6 +94,15 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
     after changing those).
     """
     h = hashlib.sha1(repr(tuple(resolution)).encode())
+    if is_cycles(scene):  # the .blend's bytes, or the generated scene's code
+        blend = cycles_blend(scene)
+        if blend is None:
+            from ..render import cycles_scene
+
+            h.update(Path(cycles_scene.__file__).read_bytes())
+        else:
+            h.update(blend.read_bytes())
+        return blend, h.hexdigest()[:12]
     if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
         from .. import scenes
 
@@ -113,6 +144,15 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
     loaded = None
     for spp, path, role in jobs:
         fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
+        if fr is None and is_cycles(scene):  # Blender: one child process per render; Cycles times itself
+            from ..render.cycles import render_cycles
+
+            done = render_cycles(source, path, spp, seed=cycles_seed(cfg.seed, role), resolution=tuple(cfg.resolution))
+            fr = read_exr(path, require=("color", "albedo", "normal"))
+            fr.meta.setdefault("renderTimeSeconds", done.seconds)
+            fr.path = str(path)
+            rendered.append(str(path))
+            progress(f"rendered {scene_label(scene)} {spp} spp with Cycles in {done.seconds:.2f} s")
         if fr is None:
             if loaded is None:
                 loaded = load_scene(source, cfg.resolution)

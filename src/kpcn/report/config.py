@@ -98,6 +98,13 @@ class ReportConfig:
                 from ..scenes import scene_file
 
                 scene_file(s)  # ValueError naming the shipped files
+            if isinstance(s, str) and s.startswith("cycles:"):
+                from ..render.cycles import BLENDER_HELP, blender_available
+
+                if s != "cycles:generated" and not Path(s[len("cycles:"):]).is_file():
+                    raise ValueError(f"{s}: no such .blend file (cycles:generated is kpcn's generated scene)")
+                if not blender_available():
+                    raise ValueError(f"{s}: Blender's Python module bpy is not installed: {BLENDER_HELP}")
 
     @property
     def folder(self) -> Path:

@@ -26,6 +26,7 @@ class Method:
     warmed_up: bool = False
     macs_per_px: float | None = None  #: multiply-adds per pixel (None where unknown)
     macs_source: str = ""  #: where ``macs_per_px`` comes from
+    layers: tuple[str, ...] = ("color", "albedo", "normal")  #: the frame layers it reads
 
     def __call__(self, frame: Frame) -> tuple[np.ndarray, float]:
         """Denoise ``frame``; returns the ``(H, W, 3)`` image and the seconds of the call.
@@ -67,7 +68,8 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
         return denoise(frame, model=model, tile=cfg.tile, device=cfg.device)
 
     return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats,
-                  macs_per_px=macs_per_pixel(model), macs_source="counted from the model (kpcn.models.macs_per_pixel)")
+                  macs_per_px=macs_per_pixel(model), macs_source="counted from the model (kpcn.models.macs_per_pixel)",
+                  layers=tuple(model.input_spec.layers))
 
 
 def oidn_method(repeats: int = 1) -> Method:
@@ -80,6 +82,23 @@ def oidn_method(repeats: int = 1) -> Method:
     return Method(OIDN, fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), quality high, hdr, albedo + normal",
                   repeats, macs_per_px=OIDN_MACS_PER_PX,
                   macs_source="approximate: OIDN 'high' counted from its network's layer list (docs/measured.md)")
+
+
+class MissingLayersError(ValueError):
+    """A method needs layers that a scene's renders lack."""
+
+
+def check_layers(methods: list[Method], frame: Frame, scene: str) -> None:
+    """:class:`MissingLayersError` naming each method that needs layers ``frame`` lacks (a Blender
+    Cycles render has no variances)."""
+    missing = {m.name: [n for n in m.layers if n not in frame.layers] for m in methods}
+    missing = {k: v for k, v in missing.items() if v}
+    if missing:
+        lacks = "; ".join(f"{k} needs {', '.join(v)}" for k, v in missing.items())
+        found = ", ".join(sorted(n for n in frame.layers if "." not in n))  # the contract's layers, not the raw passes
+        raise MissingLayersError(f"{scene}: {lacks}, which its renders lack (they have {found}). "
+                         "For renders without variance layers (Blender Cycles) use models for them, e.g. "
+                         "--models kpcn:novar_small kpcn:can_small")
 
 
 def build_methods(cfg: ReportConfig) -> tuple[list[Method], list[str]]:

@@ -19,7 +19,7 @@ from .cache import render_scene, scene_label
 from .checks import (CONVERGED_FIELDS, against_oidn, converged_table, evaluate_converged, method_table,
                      worse_than_input)
 from .config import MC, METRICS, OIDN, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
-from .methods import Method, build_methods
+from .methods import Method, build_methods, check_layers
 from .plots import contact_sheet, plot_error_vs_time
 from .tables import markdown_report, write_csv
 
@@ -148,6 +148,7 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         if sr.label in renders:  # two XML files with the same name
             sr.label = f"{sr.label}#{len(renders)}"
         renders[sr.label] = sr
+        check_layers(methods, next(iter(sr.inputs.values())), sr.label)
         rendered += sr.rendered
         if sr.rendered:
             time.sleep(SETTLE_SECONDS)
