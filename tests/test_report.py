@@ -395,17 +395,19 @@ def test_cycles_scene_in_the_report_and_models_that_cannot_read_it(tmp_path):
 
     if not blender_available():
         pytest.skip("Blender's Python module bpy is not installed (pip install 'kpcn[blender]')")
-    kw = dict(out=str(tmp_path), name="cyc", scenes=["cycles:generated"], spp=[2, 8], ref_spp=64, converged_spp=16,
+    kw = dict(out=str(tmp_path), name="cyc", scenes=["cycles:generated", "cycles:generated:3"], spp=[2, 8], ref_spp=64,
+              converged_spp=16,
               resolution=(24, 24), oidn=False)
     cfg = ReportConfig(**kw, models=["kpcn:novar_small"])
     first = run_report(cfg)
     rows = [r for r in _csv_rows(first.paths["csv"]) if r["method"] == "kpcn:novar_small"]
-    assert {(r["scene"], int(r["spp"])) for r in rows} == {("cycles:generated", 2), ("cycles:generated", 8)}
+    assert {(r["scene"], int(r["spp"])) for r in rows} == {(s, n) for s in kw["scenes"] for n in (2, 8)}
     assert all(math.isfinite(float(r["relmse"])) for r in rows)
     # Cycles at 2 spp is noisier than at 8 against the same reference
-    mc = {int(r["spp"]): float(r["relmse"]) for r in _csv_rows(first.paths["csv"]) if r["method"] == MC}
+    mc = {int(r["spp"]): float(r["relmse"]) for r in _csv_rows(first.paths["csv"])
+          if r["method"] == MC and r["scene"] == "cycles:generated"}
     assert mc[2] > mc[8]
-    assert len(first.rendered) == 4  # 2 inputs, the converged input, the reference
+    assert len(first.rendered) == 8  # per scene: 2 inputs, the converged input, the reference
     again = run_report(cfg)
     assert again.rendered == []
     with pytest.raises(MissingLayersError, match=r"kpcn:small needs diffuseVariance.*kpcn:novar_small"):

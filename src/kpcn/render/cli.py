@@ -76,6 +76,8 @@ def _parse_args(argv=None):
     c.add_argument("blend", nargs="?", help="the .blend file (its active scene and camera)")
     c.add_argument("--generated", action="store_true",
                    help="render kpcn's generated scene (diffuse plane, glossy and glass spheres) instead")
+    c.add_argument("--variant", type=int, help="with --generated: draw materials, layout, light and view from this "
+                                                "seed (>= 0; default: the fixed layout)")
     c.add_argument("--spp", type=int, default=16, help="samples per pixel (>= 1)")
     c.add_argument("--seed", type=int, default=0, help="scene.cycles.seed (>= 0)")
     c.add_argument("--out", required=True, help="multilayer EXR to write")
@@ -158,6 +160,10 @@ def _cycles(args) -> None:
     if args.generated == (args.blend is not None):
         raise UsageError("cycles: give either a .blend file or --generated" if args.generated
                          else "cycles: give a .blend file to render, or --generated for kpcn's generated scene")
+    if args.variant is not None and not args.generated:
+        raise UsageError("--variant: only with --generated (it draws kpcn's generated scene)")
+    if args.variant is not None and args.variant < 0:
+        raise UsageError(f"--variant: must be >= 0, got {args.variant}")
     if args.spp < 1:
         raise UsageError(f"--spp: must be >= 1, got {args.spp}")
     if not 0 <= args.seed <= 2**31 - 1:
@@ -169,7 +175,8 @@ def _cycles(args) -> None:
         raise UsageError(f"--out: {out} is a folder; give the EXR file to write")
     if args.blend is not None and out.resolve() == Path(args.blend).resolve():
         raise UsageError(f"--out: {out} is the .blend file itself")
-    r = render_cycles(args.blend, out, args.spp, args.seed, tuple(args.resolution) if args.resolution else None)
+    r = render_cycles(args.blend, out, args.spp, args.seed, tuple(args.resolution) if args.resolution else None,
+                      variant=args.variant)
     print(f"{r.path}: {r.resolution[0]}x{r.resolution[1]}, {r.spp} spp, {r.seconds:.2f} s "
           f"(Blender Cycles, {len(r.passes)} passes)")
 

@@ -53,7 +53,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .cycles_scene import GENERATED_RESOLUTION, build_scene
+from .cycles_scene import GENERATED_RESOLUTION, build_scene, scene_params
 from .scene import RendererUnavailable, SceneError
 
 __all__ = ["BLENDER_HELP", "BlenderUnavailable", "CyclesRender", "blender_available", "render_cycles",
@@ -130,7 +130,7 @@ def _check(blend, out_path, spp, seed, resolution) -> tuple[Path | None, Path, t
 
 
 def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolution=None, *,
-                  timeout: float | None = None) -> CyclesRender:
+                  timeout: float | None = None, variant: int | None = None) -> CyclesRender:
     """Render a ``.blend`` (or, with ``None``, a generated scene) with Cycles into a multilayer EXR.
 
     Args:
@@ -142,6 +142,8 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         seed: ``scene.cycles.seed``.
         resolution: ``(width, height)``; ``None`` keeps the ``.blend``'s size.
         timeout: seconds after which the render is stopped (``None``: no limit).
+        variant: for the generated scene, a seed >= 0 that draws its materials, layout, light and view
+            (:func:`kpcn.render.cycles_scene.scene_params`); ``None``: the fixed layout.
 
     Returns:
         A :class:`CyclesRender` (path, size, render seconds, the file's layers,
@@ -154,9 +156,14 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         RuntimeError: Blender failed otherwise (the message ends with its last output).
     """
     blend, out, resolution = _check(blend_path_or_none, out_path, spp, seed, resolution)
+    if variant is not None:
+        if blend is not None:
+            raise ValueError("render_cycles: variant is for the generated scene, not a .blend file")
+        scene_params(variant)  # ValueError for a bad variant, before Blender starts
     if not blender_available():
         raise BlenderUnavailable(f"Blender's Python module bpy is not installed: {BLENDER_HELP}")
-    job = {"blend": str(blend.resolve()) if blend else None, "scene": str(blend) if blend else "cycles:generated",
+    label = str(blend) if blend else "cycles:generated" + (f":{variant}" if variant is not None else "")
+    job = {"blend": str(blend.resolve()) if blend else None, "scene": label, "variant": variant,
            "out": str(out.resolve()), "spp": spp, "seed": seed, "resolution": list(resolution) if resolution else None}
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parents[2])  # the folder that holds the kpcn package
@@ -249,7 +256,7 @@ def _render(bpy, job: dict) -> dict:
     else:
         bpy.ops.wm.read_factory_settings(use_empty=True)
         scene = bpy.context.scene
-        build_scene(bpy, scene)
+        build_scene(bpy, scene, job.get("variant"))
         notes = None  # nothing to report on kpcn's own scene
     _configure(scene, job, notes)
     view = [vl for vl in scene.view_layers if vl.use]

@@ -12,8 +12,20 @@ from ..render.record import update_hash
 from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
 
 _NAMED = ("test:", "random:", "file:")  #: scene names (not paths): test scenes, procedural seeds, shipped XML files
-CYCLES = "cycles:"  #: Blender Cycles scenes: ``cycles:generated`` (kpcn's generated scene) or ``cycles:<file.blend>``
+CYCLES = "cycles:"  #: Blender Cycles scenes: ``cycles:generated`` (kpcn's generated scene), ``cycles:generated:<N>``
+#: (its variant N) or ``cycles:<file.blend>``
 CYCLES_GENERATED = "cycles:generated"
+
+
+def cycles_variant(scene: Any) -> int | None:
+    """N of ``cycles:generated:<N>`` (None for the fixed layout and for .blend files); ValueError if N is bad."""
+    s = os.fspath(scene)
+    if not s.startswith(CYCLES_GENERATED + ":"):
+        return None
+    tail = s[len(CYCLES_GENERATED) + 1:]
+    if not tail.isdigit():
+        raise ValueError(f"{s}: the variant of the generated Cycles scene must be an integer >= 0")
+    return int(tail)
 
 
 def is_cycles(scene: Any) -> bool:
@@ -23,7 +35,7 @@ def is_cycles(scene: Any) -> bool:
 def cycles_blend(scene: Any) -> Path | None:
     """The ``.blend`` of a ``cycles:`` scene (None: the generated scene)."""
     s = os.fspath(scene)
-    return None if s == CYCLES_GENERATED else Path(s[len(CYCLES):])
+    return None if s == CYCLES_GENERATED or s.startswith(CYCLES_GENERATED + ":") else Path(s[len(CYCLES):])
 
 
 def cycles_seed(seed: int, role: int) -> int:
@@ -36,7 +48,7 @@ def scene_slug(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict")).replace(":", "_").replace("/", "_")
     s = os.fspath(scene)
-    if s.startswith(_NAMED) or s == CYCLES_GENERATED:
+    if s.startswith(_NAMED) or s == CYCLES_GENERATED or s.startswith(CYCLES_GENERATED + ":"):
         return s.replace(":", "_")
     if s.startswith(CYCLES):
         p = cycles_blend(s).resolve()
@@ -50,7 +62,7 @@ def scene_label(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict"))
     s = os.fspath(scene)
-    if s.startswith(CYCLES) and s != CYCLES_GENERATED:
+    if s.startswith(CYCLES) and cycles_blend(s) is not None:
         return f"cycles:{cycles_blend(s).stem}"
     return s if s.startswith(_NAMED + (CYCLES,)) else Path(s).stem
 
@@ -100,6 +112,7 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
             from ..render import cycles_scene
 
             h.update(Path(cycles_scene.__file__).read_bytes())
+            h.update(repr(cycles_variant(scene)).encode())
         else:
             h.update(blend.read_bytes())
         return blend, h.hexdigest()[:12]
@@ -147,7 +160,8 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
         if fr is None and is_cycles(scene):  # Blender: one child process per render; Cycles times itself
             from ..render.cycles import render_cycles
 
-            done = render_cycles(source, path, spp, seed=cycles_seed(cfg.seed, role), resolution=tuple(cfg.resolution))
+            done = render_cycles(source, path, spp, seed=cycles_seed(cfg.seed, role), resolution=tuple(cfg.resolution),
+                                 variant=cycles_variant(scene))
             fr = read_exr(path, require=("color", "albedo", "normal"))
             fr.meta.setdefault("renderTimeSeconds", done.seconds)
             fr.path = str(path)

@@ -15,7 +15,7 @@ from .run import run_report
 def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p = argparse.ArgumentParser(prog="python -m kpcn.report", description=_package_doc.split("\n\n")[0])
     add_config_args(p)
-    p.add_argument("--scenes", nargs="+", help="XML paths, test:<name>, random:<seed>, file:<name>, cycles:generated or cycles:<file.blend> (Blender Cycles) (shipped XML files: "
+    p.add_argument("--scenes", nargs="+", help="XML paths, test:<name>, random:<seed>, file:<name>, cycles:generated[:<N>] or cycles:<file.blend> (Blender Cycles) (shipped XML files: "
                    f"{' '.join('file:' + n for n in list_scene_files())}) (default: {' '.join(DEFAULT_SCENES)})")
     p.add_argument("--spp", type=int, nargs="+", help="input spp ladder, each >= 2 (default: 2 4 8 16 32 64 128 256)")
     p.add_argument("--ref-spp", type=int, help="reference spp (default: 2048)")
