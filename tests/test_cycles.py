@@ -414,3 +414,37 @@ def test_a_variant_renders_another_scene(cycles_dir):
 def test_cli_variant_needs_generated(tmp_path, capsys):
     assert render_main(["cycles", str(tmp_path / "a.blend"), "--variant", "2", "--out", str(tmp_path / "o.exr")]) == 2
     assert "--variant: only with --generated" in capsys.readouterr().err
+
+
+@needs_bpy
+def test_cycles_data_set_trains_a_model_without_variances(tmp_path):
+    """`render dataset --renderer cycles`: variants of the generated scene in the contract layout (no variance
+    layers), resumable like Mitsuba data sets, and a split-without-variances model trains on it."""
+    import json
+
+    from kpcn.config import load_config
+    from kpcn.data import read_manifest
+    from kpcn.train import train
+    from kpcn.train_config import RunConfig
+
+    out = tmp_path / "cyc"
+    args = ["dataset", "--renderer", "cycles", "--out", str(out), "--scenes", "2", "--first-seed", "40",
+            "--spp", "2", "4", "--ref-spp", "16", "--resolution", "24", "24"]
+    assert render_main(args) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["complete"] and [s["source"] for s in manifest["scenes"]] == ["cycles:generated:40",
+                                                                               "cycles:generated:41"]
+    pairs = read_manifest(out)
+    frame = read_exr(pairs[0].input_path)
+    assert set(frame.layers) == set(CONTRACT) and frame.spp == 2
+    assert not list(out.rglob("*.cycles.exr"))  # Blender's own files are not left behind
+    mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*.exr")}
+    assert render_main(args) == 0  # a second run renders nothing
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*.exr")} == mtimes
+    cfg = load_config(RunConfig, None, [f"data.root={out}", "data.patch_size=16", "data.patches_per_frame=4",
+                                        "data.val_scenes=1", "data.sampling=uniform", "model.input_spec=split_novar", "model.layers=2",
+                                        "model.width=8", "model.kernel_size=3", "train.batch_size=2",
+                                        "train.stage1_steps=2", "train.stage2_steps=1", "name=t"])
+    cfg.results_dir = str(tmp_path / "runs")
+    result = train(cfg, progress=False)
+    assert len(result["losses"]) == 3 and np.isfinite(result["losses"]).all()

@@ -70,6 +70,9 @@ def _parse_args(argv=None):
     d.add_argument("--spp", type=int, nargs="+", help="input spp (default 2 4 8 16 32)")
     d.add_argument("--ref-spp", type=int, help="reference spp (default 1024)")
     d.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default 128 128")
+    d.add_argument("--renderer", choices=("mitsuba", "cycles"),
+                   help="mitsuba (default): procedural Mitsuba scenes; cycles: variants of kpcn's generated Blender "
+                        "Cycles scene (no variance layers; needs kpcn[blender])")
     d.add_argument("--debug", **debug)
     c = sub.add_parser("cycles", help="render a Blender .blend (or --generated, a small built-in scene) with Cycles "
                                       "into a multilayer EXR of the passes kpcn reads (needs kpcn[blender])")
@@ -143,11 +146,13 @@ def _frame(args) -> None:
 
 def _dataset(args) -> None:
     flags = {"out": args.out, "scenes": args.scenes, "first_seed": args.first_seed, "spp": args.spp,
-             "ref_spp": args.ref_spp, "resolution": args.resolution}
+             "ref_spp": args.ref_spp, "resolution": args.resolution, "renderer": args.renderer}
     cfg = config_from_args(DatasetConfig, args, flags)
-    ensure_variant()
+    if cfg.renderer == "mitsuba":
+        ensure_variant()
     try:
-        out = render_dataset(cfg.out, cfg.scenes, cfg.spp, cfg.ref_spp, tuple(cfg.resolution), cfg.first_seed)
+        out = render_dataset(cfg.out, cfg.scenes, cfg.spp, cfg.ref_spp, tuple(cfg.resolution), cfg.first_seed,
+                             scenes=cfg.scene_list())
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"{cfg.out} is incomplete; run the same command again to resume") from None
     save_config(cfg, out / "config.yaml")

@@ -129,6 +129,11 @@ def _check(blend, out_path, spp, seed, resolution) -> tuple[Path | None, Path, t
     return blend, out, resolution
 
 
+def cycles_seed(seed: int, role: int) -> int:
+    """``scene.cycles.seed`` for render ``role`` of a frame seeded ``seed``: independent noise per (seed, role)."""
+    return (seed * 100_003 + role) % (2**31 - 1)
+
+
 def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolution=None, *,
                   timeout: float | None = None, variant: int | None = None) -> CyclesRender:
     """Render a ``.blend`` (or, with ``None``, a generated scene) with Cycles into a multilayer EXR.

@@ -44,14 +44,25 @@ class DatasetConfig:
     spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32])  #: input sample counts
     ref_spp: int = 1024
     resolution: tuple[int, int] = (128, 128)  #: (width, height)
+    #: mitsuba: kpcn's procedural Mitsuba scenes (full split with variances); cycles: variants of kpcn's
+    #: generated Blender Cycles scene, cycles:generated:<first_seed> ... (no variance layers; needs kpcn[blender])
+    renderer: str = "mitsuba"
 
     def __post_init__(self) -> None:
         from ..config import ConfigError
 
+        if self.renderer not in ("mitsuba", "cycles"):
+            raise ConfigError(f"renderer: expected mitsuba or cycles, got {self.renderer!r}")
         try:
             check_settings(self.scenes, self.spp, self.ref_spp, self.resolution, self.first_seed)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+
+    def scene_list(self) -> list[str] | None:
+        """The scenes to render (None: the procedural Mitsuba ones)."""
+        if self.renderer == "mitsuba":
+            return None
+        return [f"cycles:generated:{self.first_seed + i}" for i in range(self.scenes)]
 
 
 def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
@@ -69,6 +80,32 @@ def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
     res = list(resolution)
     if len(res) != 2 or min(res) < 1:
         raise ValueError(f"resolution (--resolution): width and height must be >= 1, got {res}")
+
+
+def _is_cycles(scene) -> bool:
+    return isinstance(scene, str) and scene.startswith("cycles:generated")
+
+
+def _cycles_frame(scene: str, path: Path, spp: int, seed: int, role: int, resolution, rec: dict) -> None:
+    """One frame of kpcn's generated Cycles scene (``cycles:generated[:<N>]``), stored in the contract layout
+    (the Cycles passes mapped to colour, diffuse, specular, albedo, normal, depth: no variances) with its
+    render record."""
+    from ..io import read_exr, write_exr
+    from .cycles import cycles_seed, render_cycles
+
+    tail = scene[len("cycles:generated"):]
+    variant = int(tail[1:]) if tail.startswith(":") and tail[1:].isdigit() else None
+    if tail and variant is None:
+        raise ValueError(f"{scene}: a generated Cycles scene is cycles:generated or cycles:generated:<N>")
+    raw = path.with_name(path.stem + ".cycles.exr")
+    try:
+        done = render_cycles(None, raw, spp, seed=cycles_seed(seed, role), resolution=tuple(resolution), variant=variant)
+        fr = read_exr(raw, require=("color", "diffuse", "specular", "albedo", "normal", "depth"))
+    finally:
+        raw.unlink(missing_ok=True)
+    layers = {k: v for k, v in fr.layers.items() if "." not in k}  # the contract's layers, not the raw passes
+    write_exr(path, layers, {"spp": spp, "renderTimeSeconds": done.seconds, "scene": scene,
+                             HEADER_KEY: json.dumps(rec, sort_keys=True)})
 
 
 def render_dataset(
@@ -157,9 +194,12 @@ def render_dataset(
                 if reason != "missing":
                     log.info("re-rendering %s: %s", path, reason)
                 folder.mkdir(parents=True, exist_ok=True)
-                loaded = loaded or load_scene(to_render, resolution)
-                render_to_exr(to_render, path, s, seed=seed, role=noise_role, loaded=loaded, max_depth=MAX_DEPTH,
-                              pass_spp=PASS_SPP, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
+                if _is_cycles(sc):
+                    _cycles_frame(sc, path, s, seed, noise_role, resolution, rec)
+                else:
+                    loaded = loaded or load_scene(to_render, resolution)
+                    render_to_exr(to_render, path, s, seed=seed, role=noise_role, loaded=loaded, max_depth=MAX_DEPTH,
+                                  pass_spp=PASS_SPP, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
             entry["frames"][path.relative_to(out).as_posix()] = rec
         manifest["scenes"].append(entry)
         if changing:

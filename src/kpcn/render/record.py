@@ -100,6 +100,12 @@ def scene_identity(scene: Any, resolution: tuple[int, int]) -> tuple[str, str, A
     """
     from .scene import SceneError, generated_scene
 
+    if isinstance(scene, str) and scene.startswith("cycles:generated"):  # Blender Cycles: the generator's code + variant
+        from . import cycles_scene
+
+        h = hashlib.sha256(Path(cycles_scene.__file__).read_bytes())
+        h.update(scene.encode())
+        return scene, "sha256:" + h.hexdigest(), scene
     if isinstance(scene, (str, os.PathLike)) and str(scene).startswith(("test:", "random:")):
         name, d = generated_scene(str(scene), resolution)
         return name, dict_fingerprint(d), {**d, "kpcn_name": name}

@@ -38,9 +38,7 @@ def cycles_blend(scene: Any) -> Path | None:
     return None if s == CYCLES_GENERATED or s.startswith(CYCLES_GENERATED + ":") else Path(s[len(CYCLES):])
 
 
-def cycles_seed(seed: int, role: int) -> int:
-    """Cycles' ``scene.cycles.seed`` for a report render: independent per (report seed, render role)."""
-    return (seed * 100_003 + role) % (2**31 - 1)
+from ..render.cycles import cycles_seed  # noqa: E402  (Cycles' seed for a report render: per seed and role)
 
 
 def scene_slug(scene: Any) -> str:
