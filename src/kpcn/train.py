@@ -110,18 +110,14 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     """Load ``cfg.train.init`` (a weights file or a shipped ``model:tag``) into ``model``; the file's
     model and the hyper-parameters the config sets must agree (:class:`ConfigError` otherwise)."""
     from .checkpoint import read_weights
-    from .models.registry import weights_entry
+    from .inference.weights import DefaultWeightsMissing, resolve_weights
 
     init = cfg.train.init
-    path = Path(init)
-    if not path.is_file() and ":" in init and "/" not in init:
-        name, tag = init.split(":", 1)
-        try:
-            path = weights_entry(name, tag or None).path
-        except KeyError as exc:
-            raise ConfigError(f"train.init: {exc.args[0]}") from None
-    elif not path.is_file():
-        raise ConfigError(f"train.init: no weights file {init!r} (a .safetensors path or a shipped model:tag)")
+    try:
+        path = resolve_weights(init)
+    except (DefaultWeightsMissing, FileNotFoundError) as exc:
+        raise ConfigError(f"train.init: no weights file {init!r} (a .safetensors path or a shipped model:tag): "
+                          f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()

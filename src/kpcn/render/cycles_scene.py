@@ -6,9 +6,29 @@ glossy and a glass sphere, an area light, a world light and a camera.
 from __future__ import annotations
 
 import math
+import os
 
 #: size of the generated scene when no resolution is given
 GENERATED_RESOLUTION = (128, 128)
+#: the scene's name in data sets and reports; ``cycles:generated:<N>`` is its variant N
+GENERATED = "cycles:generated"
+
+
+def is_generated(name) -> bool:
+    """Whether ``name`` is ``cycles:generated`` or ``cycles:generated:<...>``."""
+    s = os.fspath(name) if isinstance(name, (str, os.PathLike)) else None
+    return s is not None and (s == GENERATED or s.startswith(GENERATED + ":"))
+
+
+def generated_variant(name) -> int | None:
+    """N of ``cycles:generated:<N>`` (None for ``cycles:generated``); ValueError for any other name."""
+    s = os.fspath(name)
+    if s == GENERATED:
+        return None
+    tail = s[len(GENERATED) + 1:]
+    if not s.startswith(GENERATED + ":") or not tail.isdigit():
+        raise ValueError(f"{s}: a generated Cycles scene is cycles:generated or cycles:generated:<N> (N >= 0)")
+    return int(tail)
 
 
 def scene_params(variant: int | None = None) -> dict:

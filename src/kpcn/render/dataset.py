@@ -23,6 +23,7 @@ from ..io import atomic_write
 from . import manifest as mf
 from .frame import render_to_exr
 from .manifest import DatasetError, DatasetStatus, dataset_status
+from .cycles_scene import generated_variant, is_generated
 from .record import HEADER_KEY, frame_record, scene_identity, stale_reason
 from .scene import load_scene
 
@@ -82,10 +83,6 @@ def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
         raise ValueError(f"resolution (--resolution): width and height must be >= 1, got {res}")
 
 
-def _is_cycles(scene) -> bool:
-    return isinstance(scene, str) and scene.startswith("cycles:generated")
-
-
 def _cycles_frame(scene: str, path: Path, spp: int, seed: int, role: int, resolution, rec: dict) -> None:
     """One frame of kpcn's generated Cycles scene (``cycles:generated[:<N>]``), stored in the contract layout
     (the Cycles passes mapped to colour, diffuse, specular, albedo, normal, depth: no variances) with its
@@ -93,10 +90,7 @@ def _cycles_frame(scene: str, path: Path, spp: int, seed: int, role: int, resolu
     from ..io import read_exr, write_exr
     from .cycles import cycles_seed, render_cycles
 
-    tail = scene[len("cycles:generated"):]
-    variant = int(tail[1:]) if tail.startswith(":") and tail[1:].isdigit() else None
-    if tail and variant is None:
-        raise ValueError(f"{scene}: a generated Cycles scene is cycles:generated or cycles:generated:<N>")
+    variant = generated_variant(scene)
     raw = path.with_name(path.stem + ".cycles.exr")
     try:
         done = render_cycles(None, raw, spp, seed=cycles_seed(seed, role), resolution=tuple(resolution), variant=variant)
@@ -194,7 +188,7 @@ def render_dataset(
                 if reason != "missing":
                     log.info("re-rendering %s: %s", path, reason)
                 folder.mkdir(parents=True, exist_ok=True)
-                if _is_cycles(sc):
+                if is_generated(sc):
                     _cycles_frame(sc, path, s, seed, noise_role, resolution, rec)
                 else:
                     loaded = loaded or load_scene(to_render, resolution)

@@ -98,11 +98,10 @@ def scene_identity(scene: Any, resolution: tuple[int, int]) -> tuple[str, str, A
     ``random:``/``test:`` scenes are generated here once — hashed, and returned
     as a dict (named by ``kpcn_name``) that renders exactly as the string would.
     """
+    from . import cycles_scene
     from .scene import SceneError, generated_scene
 
-    if isinstance(scene, str) and scene.startswith("cycles:generated"):  # Blender Cycles: the generator's code + variant
-        from . import cycles_scene
-
+    if cycles_scene.is_generated(scene):  # Blender Cycles: the generator's code + variant
         h = hashlib.sha256(Path(cycles_scene.__file__).read_bytes())
         h.update(scene.encode())
         return scene, "sha256:" + h.hexdigest(), scene

@@ -14,18 +14,6 @@ from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, 
 _NAMED = ("test:", "random:", "file:")  #: scene names (not paths): test scenes, procedural seeds, shipped XML files
 CYCLES = "cycles:"  #: Blender Cycles scenes: ``cycles:generated`` (kpcn's generated scene), ``cycles:generated:<N>``
 #: (its variant N) or ``cycles:<file.blend>``
-CYCLES_GENERATED = "cycles:generated"
-
-
-def cycles_variant(scene: Any) -> int | None:
-    """N of ``cycles:generated:<N>`` (None for the fixed layout and for .blend files); ValueError if N is bad."""
-    s = os.fspath(scene)
-    if not s.startswith(CYCLES_GENERATED + ":"):
-        return None
-    tail = s[len(CYCLES_GENERATED) + 1:]
-    if not tail.isdigit():
-        raise ValueError(f"{s}: the variant of the generated Cycles scene must be an integer >= 0")
-    return int(tail)
 
 
 def is_cycles(scene: Any) -> bool:
@@ -34,11 +22,11 @@ def is_cycles(scene: Any) -> bool:
 
 def cycles_blend(scene: Any) -> Path | None:
     """The ``.blend`` of a ``cycles:`` scene (None: the generated scene)."""
-    s = os.fspath(scene)
-    return None if s == CYCLES_GENERATED or s.startswith(CYCLES_GENERATED + ":") else Path(s[len(CYCLES):])
+    return None if is_generated(scene) else Path(os.fspath(scene)[len(CYCLES):])
 
 
 from ..render.cycles import cycles_seed  # noqa: E402  (Cycles' seed for a report render: per seed and role)
+from ..render.cycles_scene import generated_variant, is_generated  # noqa: E402
 
 
 def scene_slug(scene: Any) -> str:
@@ -46,7 +34,7 @@ def scene_slug(scene: Any) -> str:
     if isinstance(scene, dict):
         return str(scene.get("kpcn_name", "dict")).replace(":", "_").replace("/", "_")
     s = os.fspath(scene)
-    if s.startswith(_NAMED) or s == CYCLES_GENERATED or s.startswith(CYCLES_GENERATED + ":"):
+    if s.startswith(_NAMED) or is_generated(s):
         return s.replace(":", "_")
     if s.startswith(CYCLES):
         p = cycles_blend(s).resolve()
@@ -110,7 +98,7 @@ def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
             from ..render import cycles_scene
 
             h.update(Path(cycles_scene.__file__).read_bytes())
-            h.update(repr(cycles_variant(scene)).encode())
+            h.update(repr(generated_variant(scene)).encode())
         else:
             h.update(blend.read_bytes())
         return blend, h.hexdigest()[:12]
@@ -159,7 +147,7 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
             from ..render.cycles import render_cycles
 
             done = render_cycles(source, path, spp, seed=cycles_seed(cfg.seed, role), resolution=tuple(cfg.resolution),
-                                 variant=cycles_variant(scene))
+                                 variant=None if source is not None else generated_variant(scene))
             fr = read_exr(path, require=("color", "albedo", "normal"))
             fr.meta.setdefault("renderTimeSeconds", done.seconds)
             fr.path = str(path)

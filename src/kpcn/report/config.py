@@ -101,10 +101,12 @@ class ReportConfig:
             if isinstance(s, str) and s.startswith("cycles:"):
                 from ..render.cycles import BLENDER_HELP, blender_available
 
-                from .cache import cycles_blend, cycles_variant
+                from ..render.cycles_scene import generated_variant, is_generated
+                from .cache import cycles_blend
 
-                cycles_variant(s)  # ValueError for a bad variant
-                if cycles_blend(s) is not None and not cycles_blend(s).is_file():
+                if is_generated(s):
+                    generated_variant(s)  # ValueError for a bad variant
+                elif not cycles_blend(s).is_file():
                     raise ValueError(f"{s}: no such .blend file (cycles:generated[:<N>] is kpcn's generated scene)")
                 if not blender_available():
                     raise ValueError(f"{s}: Blender's Python module bpy is not installed: {BLENDER_HELP}")
