@@ -134,6 +134,11 @@ def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_data
     assert val == val2 and len(more) == len(plain) + len(extra)
     assert {p.scene for p in extra} == {p.scene for p in plain}
     assert all(p.input_path == p.reference_path for p in extra)
+    cfg.data.converged_weight = 3  # each converged pair listed three times: three times its share of patches
+    weighted, _ = split_pairs(cfg, progress=False)
+    assert len(weighted) == len(plain) + 3 * len(extra)
+    key = lambda p: p.scene  # noqa: E731
+    assert sorted((p for p in weighted if p.spp == CONVERGED_SPP), key=key) == sorted(extra * 3, key=key)
 
 
 def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tmp_path):

@@ -47,6 +47,9 @@ class DataConfig:
     #: also train on each training scene's reference as its own input (target = itself): the
     #: converged end of the spp range, so the model learns to leave a clean frame alone
     converged_inputs: bool = False
+    #: how many times each converged pair is listed (its share of the patches drawn): a model without
+    #: variance layers must learn from data alone to leave a clean frame as it is
+    converged_weight: int = 1
     patch_size: int = 65
     patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
     sampling: str = "importance"
@@ -67,7 +70,7 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.sampling not in ("importance", "uniform"):
             raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
-        for key in ("patch_size", "patches_per_frame", "render_scenes"):
+        for key in ("patch_size", "patches_per_frame", "render_scenes", "converged_weight"):
             _at_least("data", self, key, 1)
         for key in ("val_scenes", "render_first_seed", "workers"):
             _at_least("data", self, key, 0)

@@ -82,7 +82,8 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
     n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
     val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
     train = [p for p in pairs if p.scene not in val_scenes]
-    return train + (converged_pairs(train) if cfg.data.converged_inputs else []), \
+    converged = converged_pairs(train) * cfg.data.converged_weight if cfg.data.converged_inputs else []
+    return train + converged, \
         [p for p in pairs if p.scene in val_scenes]
 
 
