@@ -148,6 +148,29 @@ def test_read_exr_gives_the_contract_layers(noisy):
     assert frame["depth"].min() == 0 and frame["depth"].max() < 100  # 0 where nothing was hit, not 1e10
     # the Cycles passes stay in the frame next to the contract layers
     assert "ViewLayer.Diffuse Direct" in frame
+    # OIDN's albedo beside the diffuse one: they differ on the metal and glass spheres (Diffuse Color is 0 there)
+    np.testing.assert_array_equal(frame["denoisingAlbedo"], raw["Denoising Albedo"][..., :3].astype(np.float32))
+    assert meta["cycles_passes"]["denoisingAlbedo"] == "Denoising Albedo"
+    no_diffuse = frame["albedo"].max(-1) == 0
+    assert no_diffuse.any() and (frame["denoisingAlbedo"][no_diffuse].max(-1) > 0.05).mean() > 0.5
+
+
+@needs_bpy
+def test_colour_albedo_normal_models_and_oidn_read_oidns_albedo(noisy):
+    """The colour + albedo + normal spec and OIDN read Denoising Albedo where a file has it; the split specs
+    keep the diffuse albedo; a file without it (Mitsuba's) is read as it is."""
+    from kpcn.baselines import oidn_guides
+    from kpcn.inputs import get_input_spec
+
+    path, _, _ = noisy
+    frame = read_exr(path, require=CONTRACT)
+    can = get_input_spec("color_albedo_normal").select(frame)
+    assert can["albedo"] is frame["denoisingAlbedo"] and can.meta["layers_from"] == {"albedo": "denoisingAlbedo"}
+    assert frame["albedo"] is not frame["denoisingAlbedo"]  # the caller's frame is untouched
+    assert get_input_spec("split_novar").select(frame)["albedo"] is frame["albedo"]
+    assert oidn_guides(frame)[0] is frame["denoisingAlbedo"]
+    del frame.layers["denoisingAlbedo"]
+    assert get_input_spec("color_albedo_normal").select(frame) is frame and oidn_guides(frame)[0] is frame["albedo"]
 
 
 @needs_bpy
@@ -261,7 +284,7 @@ def test_novar_model_beats_noisy_input_against_reference(cycles_dir):
     """kpcn:novar_small on a Cycles render: relMSE against a 512-spp Cycles reference (another seed)
     below the noisy input's; OIDN's on the same file is printed beside it."""
     from kpcn import denoise
-    from kpcn.baselines import oidn_available, oidn_denoise
+    from kpcn.baselines import oidn_available, oidn_denoise, oidn_guides
     from kpcn.metrics import relmse
     from kpcn.models import list_weights
 
@@ -274,7 +297,7 @@ def test_novar_model_beats_noisy_input_against_reference(cycles_dir):
     out = denoise(noisy_path, model="kpcn:novar_small")
     scores = {"noisy": relmse(frame["color"], ref), "kpcn:novar_small": relmse(out, ref)}
     if oidn_available():
-        scores["oidn"] = relmse(oidn_denoise(frame["color"], frame["albedo"], frame["normal"]), ref)
+        scores["oidn"] = relmse(oidn_denoise(frame["color"], *oidn_guides(frame)), ref)
     print("relMSE against 512 spp (8 spp input): " + ", ".join(f"{k} {v:.4f}" for k, v in scores.items()))
     assert scores["kpcn:novar_small"] < scores["noisy"]
 
@@ -436,7 +459,7 @@ def test_cycles_data_set_trains_a_model_without_variances(tmp_path):
                                                                                "cycles:generated:41"]
     pairs = read_manifest(out)
     frame = read_exr(pairs[0].input_path)
-    assert set(frame.layers) == set(CONTRACT) and frame.spp == 2
+    assert set(frame.layers) == {*CONTRACT, "denoisingAlbedo"} and frame.spp == 2  # OIDN's albedo kept too
     assert not list(out.rglob("*.cycles.exr"))  # Blender's own files are not left behind
     mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*.exr")}
     assert render_main(args) == 0  # a second run renders nothing

@@ -5,7 +5,7 @@ Intel Open Image Denoise (OIDN) through the optional ``pyoidn`` package
 
     from kpcn.baselines import oidn_available, oidn_denoise
     if oidn_available():
-        out = oidn_denoise(frame["color"], frame["albedo"], frame["normal"])   # (H, W, 3) float32
+        out = oidn_denoise(frame["color"], *oidn_guides(frame))   # (H, W, 3) float32
 
 What the wrapper does about pyoidn's input rules (``pyoidn.denoise``, OIDN 2.5):
 
@@ -24,7 +24,19 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["oidn_available", "oidn_version", "oidn_denoise"]
+from .constants import OIDN_ALBEDO
+
+__all__ = ["oidn_available", "oidn_version", "oidn_denoise", "oidn_guides"]
+
+
+def oidn_guides(frame) -> tuple[np.ndarray, np.ndarray]:
+    """OIDN's auxiliary inputs ``(albedo, normal)`` from a :class:`~kpcn.io.Frame`.
+
+    The albedo is the frame's ``denoisingAlbedo`` layer where it has one (Blender Cycles' Denoising
+    Albedo, which follows mirrors and glass to the next rough surface: the albedo OIDN is made for),
+    else ``albedo``.
+    """
+    return frame.get(OIDN_ALBEDO, frame["albedo"]), frame["normal"]
 
 
 def oidn_available() -> bool:

@@ -6,3 +6,8 @@ EPS = 0.00316
 #: Channels per branch input: colour 3 + gradients 20 + colour variance 1
 #: + feature variances 3.
 N_FEATURES = 27
+
+#: the optional layer holding the albedo OIDN takes, read in place of ``albedo`` by models and baselines made for
+#: it (the colour + albedo + normal spec, OIDN) where a frame has it: Blender Cycles' Denoising Albedo, which
+#: follows mirrors and glass to the next rough surface (``albedo`` is the diffuse albedo at the first hit)
+OIDN_ALBEDO = "denoisingAlbedo"

@@ -83,7 +83,7 @@ def read_pair(pair: FramePair, spec: InputSpec | str = DEFAULT_SPEC) -> tuple[Fr
     spec = get_input_spec(spec)
     noisy = read_exr(pair.input_path, require=tuple(dict.fromkeys(spec.layers + ("color",))))
     ref = read_exr(pair.reference_path, require=spec.target_layers)
-    return noisy, ref
+    return spec.select(noisy), ref
 
 
 def load_pair(pair: FramePair, spec: InputSpec | str = DEFAULT_SPEC) -> dict[str, torch.Tensor]:

@@ -32,7 +32,7 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 
-from .constants import EPS
+from .constants import EPS, OIDN_ALBEDO
 from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of
 
 __all__ = [
@@ -80,6 +80,8 @@ class InputSpec:
             differences in x / in y (in the same feature order), or None.
         variance_channels: the channels of a branch tensor that are variances
             (the patch store keeps them float32; the ``logvar`` transform logs them).
+        prefer: ``((layer, other), ...)``: ``layer`` is read from ``other`` in frames that have it
+            (:meth:`select`); e.g. OIDN's albedo (Cycles' Denoising Albedo) for ``albedo``.
     """
 
     name: str
@@ -98,6 +100,11 @@ class InputSpec:
     grad_x: tuple[int, int] | None = None
     grad_y: tuple[int, int] | None = None
     variance_channels: tuple[int, ...] = ()
+    prefer: tuple[tuple[str, str], ...] = ()
+
+    def select(self, frame):
+        """The :class:`~kpcn.io.Frame` this spec reads from ``frame``: its layers with :attr:`prefer` applied."""
+        return frame.preferring(dict(self.prefer)) if self.prefer else frame
 
     def layers_for(self, branches) -> tuple[str, ...]:
         """The layers needed to build only ``branches``."""
@@ -233,4 +240,7 @@ COLOR_ALBEDO_NORMAL = register_input_spec(InputSpec(
     layers=("color", "albedo", "normal"), branches=("color",), channels=9, branch_layers={"color": ("color",)},
     halo=0, uses_depth_scale=False, target_layers=("color",), build=_can_build, targets=_can_targets,
     reconstruct=_can_reconstruct, rgb_starts=(0, 3),
+    # OIDN's albedo where the renderer writes it (Cycles' Denoising Albedo follows mirrors and glass to the next
+    # rough surface): without a split, the only guide for reflections; the split specs keep the diffuse albedo
+    prefer=(("albedo", OIDN_ALBEDO),),
 ))

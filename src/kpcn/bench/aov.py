@@ -35,7 +35,7 @@ def _sum_errors(total: np.ndarray, beauty: np.ndarray) -> tuple[float, float]:
 
 def bench_aov(argv: list[str]) -> int:
     cfg = parse_config(AovBenchConfig, argv, "python -m kpcn.bench aov", __doc__.split("\n\n")[0])
-    from ..baselines import oidn_available, oidn_denoise
+    from ..baselines import oidn_available, oidn_denoise, oidn_guides
     from ..inference import denoise_result, load_model
     from ..render.groups import render_light_groups
 
@@ -58,8 +58,8 @@ def bench_aov(argv: list[str]) -> int:
         o = ("-", "-", "-")
         if oidn_available():
             t0 = time.perf_counter()
-            beauty = oidn_denoise(frame["color"], frame["albedo"], frame["normal"])
-            total = sum(oidn_denoise(frame[n], frame["albedo"], frame["normal"]) for n in names)
+            beauty = oidn_denoise(frame["color"], *oidn_guides(frame))
+            total = sum(oidn_denoise(frame[n], *oidn_guides(frame)) for n in names)
             oidn_s = time.perf_counter() - t0
             o_max, o_mean = _sum_errors(total, beauty)
             o = (f"{o_max:.2e}", f"{o_mean:.2e}", f"{oidn_s:.2f}")

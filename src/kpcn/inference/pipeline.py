@@ -162,6 +162,7 @@ def denoise_result(
     net = load_model(model, dev, trust_pickle=trust_pickle)
     spec = net.input_spec
     frame, t_read = _as_frame(exr_path_or_frame, spec.layers)
+    frame = spec.select(frame)  # e.g. OIDN's albedo for a colour + albedo + normal model, where the file has it
     read_s += t_read
     h, w = _validate(frame, spec.layers)
     plans = plan_aovs(frame, list(layers), spec, aov_branch) if layers else []

@@ -18,6 +18,9 @@ layer           Cycles passes
 ``normal``      Normal (world space, first hit); without it, Denoising Normal (camera space)
 ``depth``       Denoising Depth (distance along the camera ray, 0 where nothing was hit);
                 without it, Depth (distance along the view axis; Cycles' 1e10 for "no hit" -> 0)
+``denoisingAlbedo``  Denoising Albedo (optional): the albedo OIDN takes, which follows mirrors and glass
+                to the next rough surface; the ``color_albedo_normal`` spec reads it in place of
+                ``albedo`` when a frame has it (:attr:`kpcn.inputs.InputSpec.prefer`)
 ==============  ================================================================================
 
 Cycles stores each light pass divided by its colour pass, so the products above
@@ -50,6 +53,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 import numpy as np
+from ..constants import OIDN_ALBEDO
 
 __all__ = ["CYCLES_PASSES", "CyclesFile", "convert_cycles", "cycles_pass_help"]
 
@@ -293,6 +297,9 @@ def convert_cycles(
     option = pick("albedo")
     if option:
         derived["albedo"] = get(option[0])
+    if "denoising_albedo" in cf.passes:  # optional: for models that take OIDN's albedo
+        derived[OIDN_ALBEDO] = get("denoising_albedo")
+        cf.used[OIDN_ALBEDO] = CYCLES_PASSES["denoising_albedo"][0]
     option = pick("normal")
     if option:
         derived["normal"] = get(option[0])

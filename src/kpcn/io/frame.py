@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -58,6 +58,21 @@ class Frame:
 
     def get(self, name: str, default=None):
         return self.layers.get(name, default)
+
+    def preferring(self, sources: Mapping[str, str]) -> "Frame":
+        """This frame with layer ``k`` read from layer ``sources[k]`` where the frame has that one.
+
+        A shallow copy (arrays shared) when anything is replaced, with ``meta["layers_from"]``
+        saying what was; ``self`` itself when nothing is.
+        """
+        swaps = {k: v for k, v in sources.items() if v in self.layers}
+        if not swaps:
+            return self
+        layers = dict(self.layers)
+        for k, v in swaps.items():
+            layers[k] = self.layers[v]
+        meta = {**self.meta, "layers_from": {**self.meta.get("layers_from", {}), **swaps}}
+        return Frame(layers, meta, self.path, dict(self.nonfinite))
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -74,10 +74,10 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
 
 def oidn_method(repeats: int = 1) -> Method:
     """OIDN (``hdr=True``, colour + albedo + normal) as a :class:`Method`."""
-    from ..baselines import oidn_denoise, oidn_version
+    from ..baselines import oidn_denoise, oidn_guides, oidn_version
 
     def fn(frame: Frame) -> np.ndarray:
-        return oidn_denoise(frame["color"], frame["albedo"], frame["normal"])
+        return oidn_denoise(frame["color"], *oidn_guides(frame))
 
     return Method(OIDN, fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), quality high, hdr, albedo + normal",
                   repeats, macs_per_px=OIDN_MACS_PER_PX,
