@@ -2,6 +2,7 @@
 entries are rebuilt, the data set is never modified, and batches are the same with and without workers."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -117,6 +118,10 @@ def test_a_stale_frame_is_preprocessed_again_and_only_it(data, tmp_path):
     # another spec has its own entries: the kpcn_split ones stay trusted
     assert st.prepare(pairs, "split_novar", tmp_path / "novar").built == list(range(6))
     assert st.prepare(pairs, SPEC, store).built == []
+    # a spec that reads another layer in place of one (InputSpec.prefer) does not trust entries built without it
+    can = get_input_spec("color_albedo_normal")
+    assert can.prefer and st.fingerprint(pairs[0], can, store) != \
+        st.fingerprint(pairs[0], dataclasses.replace(can, prefer=()), store)
 
 
 def test_half_written_entries_are_rebuilt_not_trusted(data, tmp_path, monkeypatch):

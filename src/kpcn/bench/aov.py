@@ -58,8 +58,9 @@ def bench_aov(argv: list[str]) -> int:
         o = ("-", "-", "-")
         if oidn_available():
             t0 = time.perf_counter()
-            beauty = oidn_denoise(frame["color"], *oidn_guides(frame))
-            total = sum(oidn_denoise(frame[n], *oidn_guides(frame)) for n in names)
+            guides = oidn_guides(frame)
+            beauty = oidn_denoise(frame["color"], *guides)
+            total = sum(oidn_denoise(frame[n], *guides) for n in names)
             oidn_s = time.perf_counter() - t0
             o_max, o_mean = _sum_errors(total, beauty)
             o = (f"{o_max:.2e}", f"{o_mean:.2e}", f"{oidn_s:.2f}")

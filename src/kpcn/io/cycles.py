@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 import numpy as np
+
 from ..constants import OIDN_ALBEDO
 
 __all__ = ["CYCLES_PASSES", "CyclesFile", "convert_cycles", "cycles_pass_help"]

@@ -53,7 +53,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .cycles_scene import GENERATED_RESOLUTION, build_scene, scene_params
+from .cycles_scene import GENERATED, GENERATED_RESOLUTION, build_scene, scene_params
 from .scene import RendererUnavailable, SceneError
 
 __all__ = ["BLENDER_HELP", "BlenderUnavailable", "CyclesRender", "blender_available", "render_cycles",
@@ -167,7 +167,7 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         scene_params(variant)  # ValueError for a bad variant, before Blender starts
     if not blender_available():
         raise BlenderUnavailable(f"Blender's Python module bpy is not installed: {BLENDER_HELP}")
-    label = str(blend) if blend else "cycles:generated" + (f":{variant}" if variant is not None else "")
+    label = str(blend) if blend else GENERATED + (f":{variant}" if variant is not None else "")
     job = {"blend": str(blend.resolve()) if blend else None, "scene": label, "variant": variant,
            "out": str(out.resolve()), "spp": spp, "seed": seed, "resolution": list(resolution) if resolution else None}
     env = dict(os.environ)

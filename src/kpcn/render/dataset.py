@@ -23,7 +23,7 @@ from ..io import atomic_write
 from . import manifest as mf
 from .frame import render_to_exr
 from .manifest import DatasetError, DatasetStatus, dataset_status
-from .cycles_scene import generated_variant, is_generated
+from .cycles_scene import GENERATED, generated_variant, is_generated
 from .record import HEADER_KEY, frame_record, scene_identity, stale_reason
 from .scene import load_scene
 
@@ -63,7 +63,7 @@ class DatasetConfig:
         """The scenes to render (None: the procedural Mitsuba ones)."""
         if self.renderer == "mitsuba":
             return None
-        return [f"cycles:generated:{self.first_seed + i}" for i in range(self.scenes)]
+        return [f"{GENERATED}:{self.first_seed + i}" for i in range(self.scenes)]
 
 
 def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:

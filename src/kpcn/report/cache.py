@@ -8,6 +8,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..io import Frame, read_exr, write_exr
+from ..render.cycles import cycles_seed  # Cycles' seed for a report render: per seed and role
+from ..render.cycles_scene import generated_variant, is_generated
 from ..render.record import update_hash
 from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
 
@@ -23,10 +25,6 @@ def is_cycles(scene: Any) -> bool:
 def cycles_blend(scene: Any) -> Path | None:
     """The ``.blend`` of a ``cycles:`` scene (None: the generated scene)."""
     return None if is_generated(scene) else Path(os.fspath(scene)[len(CYCLES):])
-
-
-from ..render.cycles import cycles_seed  # noqa: E402  (Cycles' seed for a report render: per seed and role)
-from ..render.cycles_scene import generated_variant, is_generated  # noqa: E402
 
 
 def scene_slug(scene: Any) -> str:
