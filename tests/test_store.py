@@ -122,6 +122,10 @@ def test_a_stale_frame_is_preprocessed_again_and_only_it(data, tmp_path):
     can = get_input_spec("color_albedo_normal")
     assert can.prefer and st.fingerprint(pairs[0], can, store) != \
         st.fingerprint(pairs[0], dataclasses.replace(can, prefer=()), store)
+    # nor entries built by an earlier revision of the features' maths (the noise estimate)
+    noise = get_input_spec("color_albedo_normal_noise")
+    assert st.fingerprint(pairs[0], noise, store) != \
+        st.fingerprint(pairs[0], dataclasses.replace(noise, revision=noise.revision - 1), store)
 
 
 def test_half_written_entries_are_rebuilt_not_trusted(data, tmp_path, monkeypatch):

@@ -185,4 +185,33 @@ def test_init_starts_from_given_weights_and_refuses_other_models(tiny_dataset, t
     with pytest.raises(ConfigError, match="no weights file"):
         train(tiny_cfg(tiny_dataset, tmp_path, name="f", stage1_steps=1, init=str(tmp_path / "nope.safetensors")),
               progress=False)
-    assert not (tmp_path / "d").exists() or not (tmp_path / "d" / "model.safetensors").exists()
+    assert not any((tmp_path / n).exists() for n in "def")  # refused before anything was written
+
+
+def test_init_widen_inputs_starts_from_the_narrower_models_outputs(tiny_dataset, tmp_path, render):
+    """A model that reads one more input channel (the noise precision) starts as the colour + albedo + normal model
+    it is fine-tuned from: same denoised frame, bit for bit up to float rounding."""
+    from kpcn.config import ConfigError
+    from kpcn.inference import denoise, load_model
+
+    can = dict(input_spec="color_albedo_normal")
+    first = tiny_cfg(tiny_dataset, tmp_path, name="a", stage1_steps=3, stage2_steps=0)
+    first.model.update(can)
+    train(first, progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    wide = tiny_cfg(tiny_dataset, tmp_path, name="b", stage1_steps=1, stage2_steps=0, lr=1e-12, init=str(src))
+    wide.model.update(input_spec="color_albedo_normal_noise")
+    with pytest.raises(ConfigError, match="input_spec"):  # not without saying so
+        train(wide, progress=False)
+    wide.train.init_widen_inputs = True
+    train(wide, progress=False)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    narrow, widened = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    assert widened.input_spec.name == "color_albedo_normal_noise"
+    a, b = denoise(frame, narrow, device="cpu"), denoise(frame, widened, device="cpu")
+    assert np.abs(a - b).max() <= 1e-5 * np.abs(a).max()
+    # a model of another depth cannot be widened into this one
+    deep = tiny_cfg(tiny_dataset, tmp_path, name="c", stage1_steps=1, init=str(src), init_widen_inputs=True)
+    deep.model.update(input_spec="color_albedo_normal_noise", layers=4)
+    with pytest.raises(ConfigError, match="layers"):
+        train(deep, progress=False)

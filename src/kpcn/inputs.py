@@ -17,6 +17,8 @@ spec                          branches                   channels   layers read
                                                                     and the variances of all five
 ``split_novar``               ``diffuse``, ``specular``  23 each    diffuse, specular, albedo, normal, depth
 ``color_albedo_normal``       ``color``                  9          color, albedo, normal (OIDN's inputs)
+``color_albedo_normal_noise`` ``color``                  10         the same, plus the frame's noise precision
+                                                                    (:mod:`kpcn.noise`) as one constant channel
 ============================  =========================  =========  =======================================
 
 The split specs use the KPCN transforms (DESIGN: ``diffuse / (albedo + eps)``
@@ -27,6 +29,7 @@ and ``log1p(specular)``, gradients as forward differences; see
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Callable, Mapping
 
 import numpy as np
@@ -34,6 +37,7 @@ import torch
 
 from .constants import EPS, OIDN_ALBEDO
 from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of
+from .noise import REVISION as NOISE_REVISION, noise_precision
 
 __all__ = [
     "InputSpec",
@@ -67,9 +71,16 @@ class InputSpec:
             whose layers are zero over a region is zero there).
         halo: pixels beyond a pixel that its features read (1: forward differences).
         uses_depth_scale: the features divide depth by the whole frame's largest
-            depth (tiles must be given that value).
+            depth (tiles must be given that value: :meth:`frame_value`).
+        frame_stat: ``frame_stat(frame) -> (1, 1, 1, 1)``, another whole-frame value
+            the features read (the noise precision); like the depth scale, tiles
+            are given the whole frame's (:meth:`frame_value`), and ``build``
+            computes it from its buffers when it is not given.
+        revision: bumped when the features' maths changes, so stores of built
+            patches (:mod:`kpcn.store`) made before are rebuilt, not trusted.
         target_layers: layers a reference render must have.
-        build: ``build(buffers, depth_scale, branches) -> inputs``; ``branches``
+        build: ``build(buffers, frame_value, branches) -> inputs``; ``frame_value``
+            is the depth scale or ``frame_stat`` (None: from ``buffers``); ``branches``
             lists those to build (the others are absent from the result).
         targets: ``targets(reference_buffers, inputs) -> {"y_<branch>", "y_color"}``.
         reconstruct: ``reconstruct(outputs, inputs) -> (B, 3, H, W)`` colour from
@@ -101,6 +112,8 @@ class InputSpec:
     grad_y: tuple[int, int] | None = None
     variance_channels: tuple[int, ...] = ()
     prefer: tuple[tuple[str, str], ...] = ()
+    frame_stat: Callable | None = field(default=None, repr=False)
+    revision: int = 0
 
     def select(self, frame):
         """The :class:`~kpcn.io.Frame` this spec reads from ``frame``: its layers with :attr:`prefer` applied."""
@@ -117,6 +130,12 @@ class InputSpec:
             return None
         depth = torch.from_numpy(np.ascontiguousarray(frame["depth"][..., 0])).clamp_min(0.0)[None, None]
         return depth_scale_of(depth)
+
+    def frame_value(self, frame) -> torch.Tensor | None:
+        """The whole-frame value ``build`` takes as its second argument: the depth scale, ``frame_stat``, or None."""
+        if self.uses_depth_scale:
+            return self.frame_depth_scale(frame)
+        return self.frame_stat(frame) if self.frame_stat is not None else None
 
     def branch_is_zero(self, frame, branch: str, crop=(slice(None), slice(None))) -> bool:
         """Whether ``branch`` has no positive radiance in ``frame`` over ``crop`` (its output is then 0)."""
@@ -212,16 +231,30 @@ SPLIT_NOVAR = register_input_spec(_split_spec(
     "split_novar", False, "diffuse/specular split without variances (renderers with no variance pass; 23 channels a branch)"))
 
 
-def _can_build(buffers, depth_scale=None, branches=("color",)):
+def _can_build(buffers, frame_value=None, branches=("color",), noise=False):
+    name = "color_albedo_normal_noise" if noise else "color_albedo_normal"
     missing = [n for n in ("color", "albedo", "normal") if n not in buffers]
     if missing:
-        raise KeyError(f"color_albedo_normal: missing buffers {missing}; got {sorted(buffers)}")
+        raise KeyError(f"{name}: missing buffers {missing}; got {sorted(buffers)}")
     albedo = _clean(buffers["albedo"])
     out = {"albedo": albedo}
     if "color" in branches:
         normal = torch.nan_to_num(buffers["normal"].float(), nan=0.0, posinf=0.0, neginf=0.0)
-        out["color"] = torch.cat([_clean(buffers["color"]), albedo, normal], dim=1)
+        parts = [_clean(buffers["color"]), albedo, normal]
+        if noise:
+            if frame_value is None:  # a whole frame (training, or an untiled call): its own precision
+                frame_value = noise_precision(buffers["color"], albedo, normal)
+            b, _, h, w = albedo.shape
+            parts.append(torch.as_tensor(frame_value, dtype=albedo.dtype, device=albedo.device)
+                         .reshape(-1, 1, 1, 1).expand(b, 1, h, w))
+        out["color"] = torch.cat(parts, dim=1)
     return out
+
+
+def _frame_precision(frame) -> torch.Tensor:
+    """:func:`kpcn.noise.noise_precision` of a whole :class:`~kpcn.io.Frame` (its selected layers), ``(1, 1, 1, 1)``."""
+    t = {n: torch.from_numpy(np.ascontiguousarray(frame[n].transpose(2, 0, 1)))[None] for n in ("color", "albedo", "normal")}
+    return noise_precision(t["color"], t["albedo"], t["normal"])
 
 
 def _can_targets(ref: Tensors, inputs: Tensors) -> Tensors:
@@ -243,4 +276,13 @@ COLOR_ALBEDO_NORMAL = register_input_spec(InputSpec(
     # OIDN's albedo where the renderer writes it (Cycles' Denoising Albedo follows mirrors and glass to the next
     # rough surface): without a split, the only guide for reflections; the split specs keep the diffuse albedo
     prefer=(("albedo", OIDN_ALBEDO),),
+))
+COLOR_ALBEDO_NORMAL_NOISE = register_input_spec(InputSpec(
+    name="color_albedo_normal_noise",
+    description="colour + albedo + normal and the frame's estimated noise precision (kpcn.noise; 10 channels)",
+    layers=("color", "albedo", "normal"), branches=("color",), channels=10, branch_layers={"color": ("color",)},
+    halo=0, uses_depth_scale=False, target_layers=("color",), build=partial(_can_build, noise=True),
+    targets=_can_targets, reconstruct=_can_reconstruct, rgb_starts=(0, 3), prefer=(("albedo", OIDN_ALBEDO),),
+    # a lone bright pixel is a highlight in a converged frame and a firefly in a 2-spp one: the frame's noise tells
+    frame_stat=_frame_precision, revision=NOISE_REVISION,
 ))

@@ -112,14 +112,14 @@ def entry_name(pair, store_dir: str | os.PathLike) -> str:
 
 
 def fingerprint(pair, spec: InputSpec, store_dir: str | os.PathLike) -> dict:
-    """What an entry must match to be trusted: format, spec (and which layers it reads in place of others), each
+    """What an entry must match to be trusted: format, spec (which layers it reads in place of others, and the revision of its maths), each
     file's relative path, size and mtime, records."""
     files = {}
     for role, p in (("input", pair.input_path), ("reference", pair.reference_path)):
         st = os.stat(p)
         files[role] = [_rel(p, store_dir), int(st.st_size), int(st.st_mtime_ns)]
     return {"format": STORE_FORMAT, "spec": spec.name, "channels": spec.channels, "prefer": list(spec.prefer),
-            "files": files, "records": getattr(pair, "records", None)}
+            "revision": spec.revision, "files": files, "records": getattr(pair, "records", None)}
 
 
 def _canon(obj) -> str:

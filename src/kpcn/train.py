@@ -120,13 +120,35 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
+    free = {"name"} | ({"input_spec", "in_channels"} if cfg.train.init_widen_inputs else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
-                if k != "name" and record["hparams"].get(k) != v}
+                if k not in free and record["hparams"].get(k) != v}
     if record["model"] != want.get("name") or mismatch:
         raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
                           f"config's {want.get('name')} (file, config): {mismatch}")
-    model.load_state_dict({k: v.to(torch.float32) for k, v in weights.items()})
+    state = {k: v.to(torch.float32) for k, v in weights.items()}
+    if cfg.train.init_widen_inputs:
+        state = _widen_inputs(state, model.state_dict(), path)
+    model.load_state_dict(state)
     return str(path)
+
+
+def _widen_inputs(state: dict, target: dict, path) -> dict:
+    """``state`` with every tensor that reads fewer input channels (dim 1) than ``target``'s zero-padded to its
+    shape: the new channels are the last ones, and a zero weight makes the model ignore them."""
+    out = dict(state)
+    for k, v in state.items():
+        t = target.get(k)
+        if t is None or t.shape == v.shape:
+            continue
+        if v.dim() < 2 or v.dim() != t.dim() or v.shape[0] != t.shape[0] or v.shape[2:] != t.shape[2:] \
+                or v.shape[1] > t.shape[1]:
+            raise ConfigError(f"train.init_widen_inputs: {path}'s {k} is {tuple(v.shape)}; the model's is "
+                              f"{tuple(t.shape)} (only more input channels can be added)")
+        w = torch.zeros(t.shape, dtype=v.dtype)
+        w[:, : v.shape[1]] = v
+        out[k] = w
+    return out
 
 
 def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pickle: bool = False,
@@ -152,17 +174,16 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     model = build_model(cfg).to(d.device)
     spec = model.input_spec
 
-    # 1. the run folder and the checkpoint (every rank reads; nothing is written)
-    def check_run() -> tuple[dict, Path | None]:
+    # 1. the run folder, the checkpoint and the weights to start from (every rank reads; nothing is written)
+    def check_run() -> tuple[dict, Path | None, str | None]:
         _check_run_folder(run, resume, overwrite)
-        if not resume:
-            return {}, None
-        state, source = find_resume_state(ckpt_dir, trust_pickle, d.device, verbose=d.main)
+        state, source = find_resume_state(ckpt_dir, trust_pickle, d.device, verbose=d.main) if resume else ({}, None)
         if state:
             _check_resumable(cfg, model, state, source, log_changes=d.main)
-        return state, source
+        # a resumed run continues from its checkpoint; otherwise train.init is loaded (and refused) here
+        return state, source, _load_init(model, cfg) if cfg.train.init and not state else None
 
-    state, source = _agree(check_run)
+    state, source, init_source = _agree(check_run)
 
     # 2. the data (rank 0 renders the default data set when it is missing)
     def load_data():
@@ -211,10 +232,8 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     else:
         if resume and d.main:
             log.info("no checkpoint in %s: starting from scratch", ckpt_dir)
-        if cfg.train.init:
-            source = _load_init(model, cfg)
-            if d.main:
-                log.info("initialised from %s", source)
+        if init_source and d.main:
+            log.info("initialised from %s", init_source)
 
     ddp = model
     if d.world > 1:

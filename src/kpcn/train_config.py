@@ -113,6 +113,10 @@ class TrainConfig:
     #: its model and hyper-parameters must be the config's. None: random initialisation. A resumed
     #: run continues from its checkpoint instead.
     init: str | None = None
+    #: the ``init`` model may read fewer input channels than this config's (another input spec whose channels
+    #: are a prefix of this one's, e.g. color_albedo_normal -> color_albedo_normal_noise): the extra channels'
+    #: weights start at zero, so training starts from exactly the init model's outputs
+    init_widen_inputs: bool = False
 
     def __post_init__(self) -> None:
         from .losses import list_losses

@@ -189,8 +189,8 @@ def denoise_result(
     needed = {b for p in plans if not p.group for b in p.parts}
     active = [b for b in spec.branches if b in needed or not (skip and spec.branch_is_zero(frame, b))]
     stats.branches_skipped = tuple(b for b in spec.branches if b not in active)
-    depth_scale = spec.frame_depth_scale(frame)
-    depth_scale = depth_scale.to(dev) if depth_scale is not None else None
+    frame_value = spec.frame_value(frame)  # the depth scale or noise precision of the whole frame, given to each tile
+    frame_value = frame_value.to(dev) if frame_value is not None else None
     color_in = _noisy_color(frame)
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 
@@ -202,7 +202,7 @@ def denoise_result(
         if net.uses_frame_context and active and not (len(tiles) == 1 and tiles[0].crop == (slice(0, h), slice(0, w))):
             tc = time.perf_counter()
             whole = (slice(None), slice(None))
-            full = spec.build(_tensors(frame, spec.layers_for(active), whole, dev), depth_scale, active)
+            full = spec.build(_tensors(frame, spec.layers_for(active), whole, dev), frame_value, active)
             with _autocast(use_half):
                 context = net.frame_context(full)
             del full
@@ -229,7 +229,7 @@ def denoise_result(
                 out[t.interior] = 0.0
                 stats.tiles_zero += 1
                 continue
-            inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), depth_scale, run)
+            inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)
             with _autocast(use_half):
                 res = net(inputs, context)
             if use_half and not torch.isfinite(res["color"]).all():
