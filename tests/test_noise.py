@@ -102,9 +102,40 @@ def test_tiles_need_the_whole_frames_value(render, monkeypatch):
     frame = render("test:glossy", spp=4, seed=1, resolution=(90, 77))
     torch.manual_seed(0)
     model = create_model("kpcn", input_spec=SPEC.name, layers=3, width=8, kernel_size=5, out_init_gain=5.0).eval()
-    whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False)
+    res = inference.denoise_result(frame, model, tile=0, device="cpu", skip=False)
+    whole = res.color
+    assert res.stats.noise_precision == pytest.approx(float(SPEC.frame_value(frame)))  # and the stats say it
+    assert "noise precision" in res.stats.summary()
     tiled = inference.denoise(frame, model, tile=24, device="cpu", skip=False)
     assert np.abs(whole - tiled).max() <= 1e-5 * np.abs(whole).max()
     monkeypatch.setattr(InputSpec, "frame_value", lambda self, frame: None)
     own = inference.denoise(frame, model, tile=24, device="cpu", skip=False)
     assert np.abs(whole - own).max() > 1e-3 * np.abs(whole).max()
+
+
+def test_precision_gate_leaves_a_clean_frame_as_it_is(render):
+    """The KPCN precision gate: shut above a precision, a frame is returned as it is; below it, it is filtered.
+    The gated kernels are still convex (sum to one), so a constant stays constant."""
+    noisy = render("test:glossy", spp=2, seed=1, resolution=RES)
+    clean = render("test:glossy", spp=1024, seed=3, resolution=RES)
+    p_noisy, p_clean = (float(SPEC.frame_value(f)) for f in (noisy, clean))
+    assert p_clean > p_noisy + 2
+    torch.manual_seed(0)
+    model = create_model("kpcn", input_spec=SPEC.name, layers=3, width=8, kernel_size=5, precision_gate=True).eval()
+    with torch.no_grad():  # shut 10 steep units above the midpoint, open below it
+        model.color.gate.copy_(torch.tensor([(p_noisy + p_clean) / 2, -1.0]))
+    for frame, kept in ((clean, True), (noisy, False)):
+        out = inference.denoise(frame, model, device="cpu", skip=False)
+        change = np.abs(out - frame["color"]).max() / np.abs(frame["color"]).max()
+        assert (change < 1e-4) if kept else (change > 1e-2), (kept, change)
+        x = SPEC.build({n: _t(frame, n) for n in ("color", "albedo", "normal")})["color"]
+        with torch.no_grad():
+            k = model.color.kernels(x)
+        assert torch.allclose(k.sum(dim=1), torch.ones(()), atol=1e-5) and (k >= 0).all()
+
+
+def test_precision_gate_needs_the_precision_channel():
+    with pytest.raises(ValueError, match="precision_gate needs an input spec"):
+        create_model("kpcn", input_spec="color_albedo_normal", precision_gate=True)
+    with pytest.raises(ValueError, match="predicts none"):
+        create_model("dpcn", input_spec=SPEC.name, precision_gate=True)

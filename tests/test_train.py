@@ -188,7 +188,7 @@ def test_init_starts_from_given_weights_and_refuses_other_models(tiny_dataset, t
     assert not any((tmp_path / n).exists() for n in "def")  # refused before anything was written
 
 
-def test_init_widen_inputs_starts_from_the_narrower_models_outputs(tiny_dataset, tmp_path, render):
+def test_init_extend_starts_from_the_narrower_models_outputs(tiny_dataset, tmp_path, render):
     """A model that reads one more input channel (the noise precision) starts as the colour + albedo + normal model
     it is fine-tuned from: same denoised frame, bit for bit up to float rounding."""
     from kpcn.config import ConfigError
@@ -203,15 +203,23 @@ def test_init_widen_inputs_starts_from_the_narrower_models_outputs(tiny_dataset,
     wide.model.update(input_spec="color_albedo_normal_noise")
     with pytest.raises(ConfigError, match="input_spec"):  # not without saying so
         train(wide, progress=False)
-    wide.train.init_widen_inputs = True
+    wide.train.init_extend = True
     train(wide, progress=False)
     frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
     narrow, widened = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
     assert widened.input_spec.name == "color_albedo_normal_noise"
     a, b = denoise(frame, narrow, device="cpu"), denoise(frame, widened, device="cpu")
     assert np.abs(a - b).max() <= 1e-5 * np.abs(a).max()
+    # with the precision gate added too: within the gate's initial 0.25 % of the narrow model, and the gate opens
+    # on its own as the precision rises only once trained (here it is a constant)
+    gated = tiny_cfg(tiny_dataset, tmp_path, name="g", stage1_steps=1, stage2_steps=0, lr=1e-12, init=str(src),
+                     init_extend=True)
+    gated.model.update(input_spec="color_albedo_normal_noise", precision_gate=True)
+    train(gated, progress=False)
+    g = denoise(frame, load_model(str(tmp_path / "g" / "model.safetensors"), device="cpu"), device="cpu")
+    assert 0 < np.abs(a - g).max() <= 0.0025 * np.abs(a - frame["color"]).max() + 1e-6
     # a model of another depth cannot be widened into this one
-    deep = tiny_cfg(tiny_dataset, tmp_path, name="c", stage1_steps=1, init=str(src), init_widen_inputs=True)
+    deep = tiny_cfg(tiny_dataset, tmp_path, name="c", stage1_steps=1, init=str(src), init_extend=True)
     deep.model.update(input_spec="color_albedo_normal_noise", layers=4)
     with pytest.raises(ConfigError, match="layers"):
         train(deep, progress=False)

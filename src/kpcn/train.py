@@ -120,30 +120,36 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels"} if cfg.train.init_widen_inputs else set())
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate"} if cfg.train.init_extend else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
                 if k not in free and record["hparams"].get(k) != v}
     if record["model"] != want.get("name") or mismatch:
         raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
                           f"config's {want.get('name')} (file, config): {mismatch}")
     state = {k: v.to(torch.float32) for k, v in weights.items()}
-    if cfg.train.init_widen_inputs:
-        state = _widen_inputs(state, model.state_dict(), path)
+    if cfg.train.init_extend:
+        state = _extend(state, model.state_dict(), path)
     model.load_state_dict(state)
     return str(path)
 
 
-def _widen_inputs(state: dict, target: dict, path) -> dict:
-    """``state`` with every tensor that reads fewer input channels (dim 1) than ``target``'s zero-padded to its
-    shape: the new channels are the last ones, and a zero weight makes the model ignore them."""
+def _extend(state: dict, target: dict, path) -> dict:
+    """``state`` made to fit ``target`` (``train.init_extend``): a tensor that reads fewer input channels (dim 1)
+    is zero-padded to the new ones (the last: a zero weight ignores them); a precision gate the file lacks takes
+    the model's own initial value. Anything else that differs is a ConfigError."""
     out = dict(state)
+    for k, t in target.items():
+        if k not in state:
+            if not k.endswith(".gate"):
+                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate can be added)")
+            out[k] = t.detach().clone()
     for k, v in state.items():
         t = target.get(k)
         if t is None or t.shape == v.shape:
             continue
         if v.dim() < 2 or v.dim() != t.dim() or v.shape[0] != t.shape[0] or v.shape[2:] != t.shape[2:] \
                 or v.shape[1] > t.shape[1]:
-            raise ConfigError(f"train.init_widen_inputs: {path}'s {k} is {tuple(v.shape)}; the model's is "
+            raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is "
                               f"{tuple(t.shape)} (only more input channels can be added)")
         w = torch.zeros(t.shape, dtype=v.dtype)
         w[:, : v.shape[1]] = v

@@ -113,10 +113,11 @@ class TrainConfig:
     #: its model and hyper-parameters must be the config's. None: random initialisation. A resumed
     #: run continues from its checkpoint instead.
     init: str | None = None
-    #: the ``init`` model may read fewer input channels than this config's (another input spec whose channels
-    #: are a prefix of this one's, e.g. color_albedo_normal -> color_albedo_normal_noise): the extra channels'
-    #: weights start at zero, so training starts from exactly the init model's outputs
-    init_widen_inputs: bool = False
+    #: the config's model may extend the ``init`` model: read more input channels (another input spec whose
+    #: channels start with the file's, e.g. color_albedo_normal -> color_albedo_normal_noise; the added
+    #: channels' weights start at zero) and add the precision gate (starting nearly open), so training starts
+    #: from the file's outputs (exactly, or within the gate's 0.25 %)
+    init_extend: bool = False
 
     def __post_init__(self) -> None:
         from .losses import list_losses

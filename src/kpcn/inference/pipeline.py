@@ -191,6 +191,8 @@ def denoise_result(
     stats.branches_skipped = tuple(b for b in spec.branches if b not in active)
     frame_value = spec.frame_value(frame)  # the depth scale or noise precision of the whole frame, given to each tile
     frame_value = frame_value.to(dev) if frame_value is not None else None
+    if spec.frame_stat is not None and frame_value is not None:
+        stats.noise_precision = float(frame_value.reshape(-1)[0])
     color_in = _noisy_color(frame)
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 

@@ -28,6 +28,8 @@ class DenoiseStats:
         peak_rss_mb: the process's peak resident memory after the call (an upper bound for this call).
         peak_cuda_mb: peak CUDA memory allocated by torch during the call (CUDA only).
         nonfinite: NaN/Inf values replaced per layer (by the reader or here).
+        noise_precision: the frame's estimated noise precision (:mod:`kpcn.noise`) for models whose
+            input spec reads it; None otherwise.
     """
 
     seconds: float = 0.0
@@ -50,6 +52,7 @@ class DenoiseStats:
     peak_rss_mb: float | None = None
     peak_cuda_mb: float | None = None
     nonfinite: dict[str, int] = field(default_factory=dict)
+    noise_precision: float | None = None
 
     def summary(self) -> str:
         h, w = self.size
@@ -65,6 +68,8 @@ class DenoiseStats:
                        if self.branch_tiles_skipped.get(b)]
             if partial:
                 parts.append("ran " + ", ".join(partial))
+        if self.noise_precision is not None:
+            parts.append(f"noise precision {self.noise_precision:.2f}")
         return ", ".join(parts)
 
 

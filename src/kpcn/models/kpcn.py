@@ -95,6 +95,12 @@ class BranchConfig:
         dilations: one dilation per conv layer (``None``: all 1). Growing
             dilations (1, 2, 4, 8, ...) give a wide context at the cost of a
             plain conv: the "dilated" configs use them.
+        precision_gate: KPCN on an input spec with a noise precision channel
+            (``color_albedo_normal_noise``): blend each kernel with the identity by a
+            gate of the frame's precision ``p``, ``g = sigmoid(10 (a + c p))`` (two learnt
+            scalars): ``k' = g k + (1 - g) delta``. Still a convex kernel (constant stays
+            constant, zero stays zero, light groups still sum), and a direct path by which
+            a converged frame is left as it is. Starts nearly open (``g = 0.9975``).
         input_transform: ``"log"`` feeds the conv stack ``sign(x) log1p(|x|)`` of
             the features (the kernels are still applied to the raw colour), so
             the network sees the same range whether the scene is dim or 1e8
@@ -113,6 +119,7 @@ class BranchConfig:
     out_init_gain: float = 0.1
     dilations: list[int] | None = None
     input_transform: str = "log"
+    precision_gate: bool = False
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -121,6 +128,9 @@ class BranchConfig:
         if self.in_channels != spec.channels:
             raise ValueError(f"BranchConfig.in_channels is {self.in_channels} but input spec {spec.name!r} "
                              f"gives {spec.channels} channels a branch")
+        if self.precision_gate and spec.frame_stat is None:
+            raise ValueError(f"BranchConfig.precision_gate needs an input spec with a noise precision channel "
+                             f"(color_albedo_normal_noise), not {spec.name!r}")
         if self.input_transform == "logvar" and spec.name != "kpcn_split":
             raise ValueError(f"BranchConfig.input_transform 'logvar' needs the kpcn_split input spec, not {spec.name!r}")
         for name in ("layers", "width", "conv_size", "kernel_size", "in_channels"):
@@ -179,6 +189,9 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
 
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
+#: the precision gate: ``sigmoid(GATE_SCALE * (a + c * p))``, (a, c) starting at (GATE_INIT, 0)
+GATE_SCALE = 10.0
+GATE_INIT = 0.6
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
 VARIANCE_CHANNELS = get_input_spec("kpcn_split").variance_channels  # (3, 24, 25, 26)
 VARIANCE_FLOOR = 1e-6
@@ -245,6 +258,9 @@ class KPCNBranch(nn.Module):
         if config.init_sigma is not None:
             with torch.no_grad():
                 self.net[-1].bias.copy_(self._prior_bias(config))
+        # (a, c) of the precision gate sigmoid(GATE_SCALE * (a + c * p)); the scale lets Adam move them at the
+        # network's learning rate by whole units over a run
+        self.gate = nn.Parameter(torch.tensor([GATE_INIT, 0.0])) if config.precision_gate else None
 
     @staticmethod
     def _prior_bias(cfg: BranchConfig) -> torch.Tensor:
@@ -271,7 +287,18 @@ class KPCNBranch(nn.Module):
     def kernels(self, x: torch.Tensor) -> torch.Tensor:
         """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)``, taps in ``F.unfold`` order."""
         _check_branch_input(x, self.config, type(self).__name__)
-        return torch.softmax(self.logits(x), dim=1)
+        k = torch.softmax(self.logits(x), dim=1)
+        if self.gate is None:
+            return k
+        g = self.precision_gate(x)
+        centre = torch.zeros_like(k[:1, :, :1, :1])
+        centre[:, k.shape[1] // 2] = 1.0
+        return g * k + (1.0 - g) * centre
+
+    def precision_gate(self, x: torch.Tensor) -> torch.Tensor:
+        """The gate ``(B, 1, H, W)`` in (0, 1) from the precision channel (the last) of ``x``; 1: the kernels as predicted."""
+        p = x[:, -1:]
+        return torch.sigmoid(GATE_SCALE * (self.gate[0] + self.gate[1] * p))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         weights = self.kernels(x)
@@ -335,6 +362,8 @@ class Denoiser(DenoiserModel):
     def __init__(self, kind: str, config: BranchConfig | None = None) -> None:
         if kind not in _BRANCHES:
             raise ValueError(f"Denoiser: kind must be one of {sorted(_BRANCHES)}, got {kind!r}")
+        if kind != "kpcn" and config is not None and config.precision_gate:
+            raise ValueError(f"Denoiser: precision_gate blends kernels; {kind} predicts none")
         super().__init__(config if config is not None else BranchConfig())
         self.kind = self.name = kind
         self.zero_preserving = kind == "kpcn"  # a convex combination of zeros is zero
