@@ -36,7 +36,7 @@ DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:fast (configs/une
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
 DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",
-                   "color_albedo_normal": "kpcn:can_small"}
+                   "color_albedo_normal_noise": "kpcn:can_small"}
 
 HOW_TO_GET_WEIGHTS = (
     "train a model with `python -m kpcn.train --config configs/small.yaml` and pass its weights "
