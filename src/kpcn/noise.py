@@ -10,13 +10,16 @@ The estimate: on pixels where the guides are flat (albedo and normal change
 by less than :data:`FLAT_ALBEDO` / :data:`FLAT_NORMAL` in a 4-neighbour
 Laplacian) and that see geometry (``|normal| > 0.5``), the Laplacian of the
 colour's channel mean, relative to the local 3×3 mean plus 5 % of the frame's
-median (not its mean, which a few fireflies would raise), clamped at 1 and averaged. Texture and geometry edges are in the guides
-and so left out; what is left is noise plus smooth shading. It is
+median (not its mean, which a few fireflies would raise), clamped at 1 and
+averaged. Texture and geometry edges are in the guides and so left out; what is
+left is noise plus smooth shading. It is
 
 * exposure-invariant (every term is a ratio of colours),
 * robust to fireflies (each pixel counts at most 1, and the frame's scale is a median),
-* falls by about ``sqrt(2)`` per doubling of spp until shading detail is left
-  (measured on the Mitsuba and Cycles training sets: docs/measured.md).
+* falls with spp until shading detail is left: by about ``sqrt(2)`` a doubling on
+  the Mitsuba training scenes, by less on the Cycles ones (docs/measured.md). Its
+  level differs between scenes and renderers: it orders the frames of a scene by
+  noise, it does not give their spp.
 
 :func:`noise_precision` maps it to ``clamp(-log2(level), 0, PRECISION_MAX)``,
 "bits of precision", which the ``color_albedo_normal_noise`` input spec
@@ -101,7 +104,8 @@ def noise_level(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor)
 
 
 def noise_precision(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """``clamp(-log2(noise_level), 0, PRECISION_MAX)`` per frame, ``(B, 1, 1, 1)``: about 1 at 1 spp,
-    +0.5 per doubling of spp, :data:`PRECISION_MAX` for a frame with no measurable noise."""
+    """``clamp(-log2(noise_level), 0, PRECISION_MAX)`` per frame, ``(B, 1, 1, 1)``: "bits of precision",
+    1.7 (Mitsuba) to 4.2 (Cycles) at 2 spp on the training scenes, up to about 0.5 more per doubling of spp,
+    :data:`PRECISION_MAX` for a frame with no measurable noise."""
     level = noise_level(color, albedo, normal)
     return (-torch.log2(level.clamp_min(2.0**-PRECISION_MAX))).clamp(0.0, PRECISION_MAX)
