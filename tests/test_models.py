@@ -241,7 +241,7 @@ def test_input_checks():
 
 
 def test_log_input_transform_makes_network_input_scale_robust():
-    from kpcn.models.kpcn import transform_input
+    from kpcn.models.layers import transform_input
 
     x = torch.tensor([-1e8, -1.0, 0.0, 1.0, 1e8])
     y = transform_input(x, "log")
@@ -254,7 +254,7 @@ def test_log_input_transform_makes_network_input_scale_robust():
 
 
 def test_logvar_transform_resolves_small_variances():
-    from kpcn.models.kpcn import VARIANCE_CHANNELS, transform_input
+    from kpcn.models.layers import VARIANCE_CHANNELS, transform_input
 
     x = torch.zeros(2, N_FEATURES, 1, 1)
     x[0, list(VARIANCE_CHANNELS)] = 1e-5  # a converged render

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .constants import EPS, OIDN_ALBEDO
-from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of
+from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of, frame_to_tensors
 from .noise import REVISION as NOISE_REVISION, noise_precision
 
 __all__ = [
@@ -253,7 +253,7 @@ def _can_build(buffers, frame_value=None, branches=("color",), noise=False):
 
 def _frame_precision(frame) -> torch.Tensor:
     """:func:`kpcn.noise.noise_precision` of a whole :class:`~kpcn.io.Frame` (its selected layers), ``(1, 1, 1, 1)``."""
-    t = {n: torch.from_numpy(np.ascontiguousarray(frame[n].transpose(2, 0, 1)))[None] for n in ("color", "albedo", "normal")}
+    t = frame_to_tensors(frame, ("color", "albedo", "normal"))
     return noise_precision(t["color"], t["albedo"], t["normal"])
 
 

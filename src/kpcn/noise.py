@@ -53,6 +53,11 @@ def _laplacian(x: torch.Tensor) -> torch.Tensor:
     return x[..., 1:-1, 1:-1] - 0.25 * (x[..., :-2, 1:-1] + x[..., 2:, 1:-1] + x[..., 1:-1, :-2] + x[..., 1:-1, 2:])
 
 
+def _at_most(values: torch.Tensor, n: int = MAX_PIXELS) -> torch.Tensor:
+    """An evenly strided subset of at most ``n`` of ``values`` (1-D): deterministic, the same for every run."""
+    return values[:: -(-values.numel() // n)] if values.numel() > n else values
+
+
 def _check(name: str, x: torch.Tensor, like: torch.Tensor | None = None) -> None:
     if not isinstance(x, torch.Tensor) or x.dim() != 4 or x.shape[1] not in (1, 3):
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
@@ -86,20 +91,14 @@ def noise_level(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor)
     for i in range(b):
         ci = c[i : i + 1]
         local = F.avg_pool2d(ci, 3, stride=1)
-        flat_c = ci.flatten()
-        if flat_c.numel() > MAX_PIXELS:
-            flat_c = flat_c[:: -(-flat_c.numel() // MAX_PIXELS)]
-        scale = local + 0.05 * flat_c.median() + 1e-12
+        scale = local + 0.05 * _at_most(ci.flatten()).median() + 1e-12
         rel = (_laplacian(ci).abs() / scale).clamp_max(1.0)
         flat = (_laplacian(a[i : i + 1]).abs().amax(dim=1, keepdim=True) < FLAT_ALBEDO) \
             & (_laplacian(n[i : i + 1]).abs().amax(dim=1, keepdim=True) < FLAT_NORMAL) \
             & (n[i : i + 1, :, 1:-1, 1:-1].norm(dim=1, keepdim=True) > 0.5)
         if flat.float().mean() < MIN_FLAT_FRACTION:
             flat = torch.ones_like(flat)
-        values = rel[flat]
-        if values.numel() > MAX_PIXELS:  # an evenly strided subset: deterministic, and the same for every run
-            values = values[:: -(-values.numel() // MAX_PIXELS)]
-        out[i] = values.mean()
+        out[i] = _at_most(rel[flat]).mean()
     return out
 
 

@@ -112,8 +112,8 @@ def entry_name(pair, store_dir: str | os.PathLike) -> str:
 
 
 def fingerprint(pair, spec: InputSpec, store_dir: str | os.PathLike) -> dict:
-    """What an entry must match to be trusted: format, spec (which layers it reads in place of others, and the revision of its maths), each
-    file's relative path, size and mtime, records."""
+    """What an entry must match to be trusted: format, spec (which layers it reads in place of others, and
+    the revision of its maths), each file's relative path, size and mtime, records."""
     files = {}
     for role, p in (("input", pair.input_path), ("reference", pair.reference_path)):
         st = os.stat(p)

@@ -58,6 +58,7 @@ from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, get_input_spec, split_reconstruct
 from ..ops.kernel_apply import PADDING_MODES, KernelApply
 from .base import DenoiserModel
+from .layers import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
 from .registry import register_model, register_weights
 
 __all__ = [
@@ -188,31 +189,9 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
     return nn.Sequential(*mods)
 
 
-INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: the precision gate: ``sigmoid(GATE_SCALE * (a + c * p))``, (a, c) starting at (GATE_INIT, 0)
 GATE_SCALE = 10.0
 GATE_INIT = 0.6
-#: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
-VARIANCE_CHANNELS = get_input_spec("kpcn_split").variance_channels  # (3, 24, 25, 26)
-VARIANCE_FLOOR = 1e-6
-
-
-def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
-    """What the conv stack sees.
-
-    ``"none"``: the raw features. ``"log"``: ``sign(x) log1p(|x|)``. ``"logvar"``:
-    the same, but the variance channels become ``log(var + 1e-6)``: a signed
-    log1p maps a 1024-spp variance and a 32-spp one to the same ~0, so the net
-    could not tell a converged input from a noisy one and blurred both.
-    """
-    if kind == "none":
-        return x
-    y = x.abs().log1p_().copysign_(x)  # sign(x) log1p(|x|) with one temporary (frames are large)
-    if kind == "logvar" and x.shape[1] > max(VARIANCE_CHANNELS):
-        idx = list(VARIANCE_CHANNELS)
-        y = y.clone()
-        y[:, idx] = torch.log(x[:, idx].clamp_min(0.0) + VARIANCE_FLOOR)
-    return y
 
 
 def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
@@ -221,24 +200,6 @@ def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
         raise ValueError(f"{who}: input must be a (B, {cfg.in_channels}, H, W) tensor, got {shape}")
     if x.shape[1] != cfg.in_channels:
         raise ValueError(f"{who}: input must have {cfg.in_channels} channels, got {x.shape[1]} ({tuple(x.shape)})")
-
-
-def kernel_prior_bias(k: int, sigma: float, logit_scale: float | None) -> torch.Tensor:
-    """Bias ``(k*k,)`` of a kernel head so that a fresh model's kernels are a Gaussian of std ``sigma`` pixels.
-
-    The log-prior ``-d^2 / (2 sigma^2)`` over the tap offset ``d``, clipped to
-    ``-logit_scale / 2`` (no tap starts in the flat part of the tanh bound) and
-    mapped through ``atanh`` so that ``s * tanh(bias / s)`` equals it.
-    """
-    r = k // 2
-    off = torch.arange(k, dtype=torch.float64) - r
-    d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
-    prior = -d2 / (2.0 * sigma**2)
-    s = logit_scale
-    if s is None:
-        return prior.clamp(min=-30.0).float()
-    prior = prior.clamp(min=-0.5 * s)
-    return (s * torch.atanh(prior / s)).float()
 
 
 class KPCNBranch(nn.Module):

@@ -56,7 +56,7 @@ from torch import nn
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
-from .kpcn import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
+from .layers import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
 from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]

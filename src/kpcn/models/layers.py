@@ -1,0 +1,56 @@
+"""Building blocks shared by the kernel-predicting models (KPCN, the multi-scale KPCN, the U-Net).
+
+* :func:`transform_input`: what a network sees of its input features (``log``:
+  signed ``log1p``, so a dim scene and a 1e8-bright one have the same range;
+  ``logvar``: variances as ``log(var + 1e-6)``);
+* :func:`kernel_prior_bias`: the bias of a kernel head so that a fresh model's
+  kernels are a Gaussian.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..inputs import get_input_spec
+
+__all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "transform_input", "kernel_prior_bias"]
+
+INPUT_TRANSFORMS = ("logvar", "log", "none")
+#: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
+VARIANCE_CHANNELS = get_input_spec("kpcn_split").variance_channels  # (3, 24, 25, 26)
+VARIANCE_FLOOR = 1e-6
+
+
+def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
+    """What the conv stack sees.
+
+    ``"none"``: the raw features. ``"log"``: ``sign(x) log1p(|x|)``. ``"logvar"``:
+    the same, but the variance channels become ``log(var + 1e-6)``: a signed
+    log1p maps a 1024-spp variance and a 32-spp one to the same ~0, so the net
+    could not tell a converged input from a noisy one and blurred both.
+    """
+    if kind == "none":
+        return x
+    y = x.abs().log1p_().copysign_(x)  # sign(x) log1p(|x|) with one temporary (frames are large)
+    if kind == "logvar" and x.shape[1] > max(VARIANCE_CHANNELS):
+        idx = list(VARIANCE_CHANNELS)
+        y = y.clone()
+        y[:, idx] = torch.log(x[:, idx].clamp_min(0.0) + VARIANCE_FLOOR)
+    return y
+
+
+def kernel_prior_bias(k: int, sigma: float, logit_scale: float | None) -> torch.Tensor:
+    """Bias ``(k*k,)`` of a kernel head so that a fresh model's kernels are a Gaussian of std ``sigma`` pixels.
+
+    The log-prior ``-d^2 / (2 sigma^2)`` over the tap offset ``d``, clipped to
+    ``-logit_scale / 2`` (no tap starts in the flat part of the tanh bound) and
+    mapped through ``atanh`` so that ``s * tanh(bias / s)`` equals it.
+    """
+    r = k // 2
+    off = torch.arange(k, dtype=torch.float64) - r
+    d2 = (off[:, None] ** 2 + off[None, :] ** 2).reshape(-1)
+    prior = -d2 / (2.0 * sigma**2)
+    s = logit_scale
+    if s is None:
+        return prior.clamp(min=-30.0).float()
+    prior = prior.clamp(min=-0.5 * s)
+    return (s * torch.atanh(prior / s)).float()
