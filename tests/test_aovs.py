@@ -35,12 +35,16 @@ def test_rendered_groups_add_up_to_the_beauty(groups):
         assert groups[n].max() > 0 and _rel(groups[n], groups["color"]) > 0.05
 
 
-@pytest.mark.parametrize("model", ["shipped", "unet_can"])
+@pytest.mark.parametrize("model", ["shipped", "unet_can", "kpcn_demod"])
 def test_denoised_light_groups_sum_to_the_denoised_beauty(groups, model):
     frame = groups
     if model == "unet_can":  # one colour branch: groups are colour layers
         torch.manual_seed(0)
         net = create_model("unet_kpcn", input_spec="color_albedo_normal", out_init_gain=5.0).eval()
+    elif model == "kpcn_demod":  # kernels weighted by albedo ratios: the groups must get the same weighting
+        torch.manual_seed(0)
+        net = create_model("kpcn", input_spec="color_albedo_normal", layers=3, width=8, kernel_size=5,
+                           demodulate=True, out_init_gain=5.0).eval()
     else:
         net = None
     names = _names(frame)

@@ -41,7 +41,8 @@ def _variants():
 
 
 #: options that change how a model reconstructs (each runs through the contract tests too)
-OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precision_gate": True}],
+OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precision_gate": True},
+                            {"input_spec": "color_albedo_normal_noise", "demodulate": True}],
                    "unet_kpcn": [{"kernel_scales": 3}, {"kernel_scales": 2, "input_spec": "color_albedo_normal"},
                                  {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1}]}
 

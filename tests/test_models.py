@@ -106,6 +106,47 @@ def test_kpcn_kernels_are_normalised_and_bounded():
     assert (w.max(dim=1).values / w.min(dim=1).values).max() <= torch.exp(torch.tensor(8.0)) * 1.001
 
 
+def test_demodulated_kernels_filter_the_albedo_demodulated_colour():
+    """``demodulate``: the output is ``(1 - beta) K*c + beta (a + e) K*(c / (a + e))`` with the softmax kernel ``K``,
+    ``beta`` the extra logit's sigmoid and ``a`` the mean albedo (float64, replicated borders included)."""
+    from kpcn.models.layers import DEMOD_EPS
+    from kpcn.ops.kernel_apply import kernel_apply
+
+    torch.manual_seed(4)
+    cfg = BranchConfig(**TINY, input_spec="color_albedo_normal", demodulate=True, out_init_gain=5.0)
+    branch = KPCNBranch(cfg).double()
+    with torch.no_grad():
+        branch.net[-1].bias[25] = 0.0  # beta around 0.5 instead of its initial 0.018
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 9, 10, 11, generator=g, dtype=torch.float64)
+    x[:, :3] *= 5.0
+    x[:, 3:6] = torch.rand(2, 3, 10, 11, generator=g, dtype=torch.float64) ** 3  # dark and bright albedo
+    z = branch.logits(x)
+    w, beta = torch.softmax(z[:, :25], dim=1), torch.sigmoid(z[:, 25:])
+    assert beta.std() > 0.05  # the blend weight varies: both terms count
+    a = x[:, 3:6].mean(dim=1, keepdim=True) + DEMOD_EPS
+    c = x[:, :3]
+    want = (1 - beta) * kernel_apply(c, w, 5, "replicate") + beta * a * kernel_apply(c / a, w, 5, "replicate")
+    torch.testing.assert_close(branch(x), want, rtol=1e-10, atol=1e-12)
+    # and it differs from the plain kernel (the demodulated term moved the output)
+    assert (branch(x) - kernel_apply(c, w, 5, "replicate")).abs().max() > 1e-3
+    # a constant colour over a constant albedo stays constant; zero stays zero
+    x2 = x.clone()
+    x2[:, :3], x2[:, 3:6] = 0.7, 0.3
+    torch.testing.assert_close(branch(x2), torch.full_like(c, 0.7))
+    x2[:, :3] = 0.0
+    assert torch.equal(branch(x2), torch.zeros_like(c))
+
+
+def test_demodulate_needs_a_colour_spec_and_kernels():
+    with pytest.raises(ValueError, match="demodulate needs a colour"):
+        BranchConfig(**TINY, demodulate=True)  # the split spec: its diffuse branch is demodulated already
+    with pytest.raises(ValueError, match="demodulate weights kernels"):
+        create_model("dpcn", **TINY, input_spec="color_albedo_normal", demodulate=True)
+    m = create_model("kpcn", **TINY, input_spec="color_albedo_normal", demodulate=True)
+    assert not m.convex_kernels and m.zero_preserving
+
+
 def test_fresh_kpcn_is_mild_blur_and_dpcn_near_identity():
     torch.manual_seed(3)
     k = 5

@@ -218,6 +218,25 @@ def test_init_extend_starts_from_the_narrower_models_outputs(tiny_dataset, tmp_p
     train(gated, progress=False)
     g = denoise(frame, load_model(str(tmp_path / "g" / "model.safetensors"), device="cpu"), device="cpu")
     assert 0 < np.abs(a - g).max() <= 0.0025 * np.abs(a - frame["color"]).max() + 1e-6
+    # with the demodulation weight added: the same softmax logits as the widened model, and the weight's logit at
+    # its initial bias everywhere (zero weights)
+    from kpcn.features import frame_to_tensors
+    from kpcn.models.kpcn import DEMOD_INIT
+
+    dm_cfg = tiny_cfg(tiny_dataset, tmp_path, name="m", stage1_steps=1, stage2_steps=0, lr=1e-12, init=str(src),
+                      init_extend=True)
+    dm_cfg.model.update(input_spec="color_albedo_normal_noise", demodulate=True)
+    train(dm_cfg, progress=False)
+    dm = load_model(str(tmp_path / "m" / "model.safetensors"), device="cpu")
+    spec = widened.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["color"]
+    with torch.no_grad():
+        zw, zd = widened.color.logits(x), dm.color.logits(x)
+    kk = zw.shape[1]
+    assert zd.shape[1] == kk + 1
+    torch.testing.assert_close(zd[:, :kk], zw, rtol=0, atol=1e-4)
+    s = dm.config.logit_scale
+    torch.testing.assert_close(zd[:, kk:], torch.full_like(zd[:, kk:], s * np.tanh(DEMOD_INIT / s)), rtol=0, atol=1e-4)
     # a model of another depth cannot be widened into this one
     deep = tiny_cfg(tiny_dataset, tmp_path, name="c", stage1_steps=1, init=str(src), init_extend=True)
     deep.model.update(input_spec="color_albedo_normal_noise", layers=4)

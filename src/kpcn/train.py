@@ -120,7 +120,7 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels", "precision_gate"} if cfg.train.init_extend else set())
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate"} if cfg.train.init_extend else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
                 if k not in free and record["hparams"].get(k) != v}
     if record["model"] != want.get("name") or mismatch:
@@ -135,8 +135,9 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
 
 def _extend(state: dict, target: dict, path) -> dict:
     """``state`` made to fit ``target`` (``train.init_extend``): a tensor that reads fewer input channels (dim 1)
-    is zero-padded to the new ones (the last: a zero weight ignores them); a precision gate the file lacks takes
-    the model's own initial value. Anything else that differs is a ConfigError."""
+    is zero-padded to the new ones (the last: a zero weight ignores them); a conv with more outputs (dim 0: the
+    demodulation weight's channel) gets zero weights and the model's own initial bias for them; a precision gate
+    the file lacks takes the model's own initial value. Anything else that differs is a ConfigError."""
     out = dict(state)
     for k, t in target.items():
         if k not in state:
@@ -147,12 +148,12 @@ def _extend(state: dict, target: dict, path) -> dict:
         t = target.get(k)
         if t is None or t.shape == v.shape:
             continue
-        if v.dim() < 2 or v.dim() != t.dim() or v.shape[0] != t.shape[0] or v.shape[2:] != t.shape[2:] \
-                or v.shape[1] > t.shape[1]:
+        if v.dim() != t.dim() or v.shape[2:] != t.shape[2:] or v.shape[0] > t.shape[0] \
+                or (v.dim() >= 2 and v.shape[1] > t.shape[1]):
             raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is "
-                              f"{tuple(t.shape)} (only more input channels can be added)")
-        w = torch.zeros(t.shape, dtype=v.dtype)
-        w[:, : v.shape[1]] = v
+                              f"{tuple(t.shape)} (only more input or output channels can be added)")
+        w = t.detach().clone().to(v.dtype) if v.dim() == 1 else torch.zeros(t.shape, dtype=v.dtype)
+        w[tuple(slice(0, n) for n in v.shape)] = v
         out[k] = w
     return out
 

@@ -17,7 +17,9 @@ channels, zero "same" padding, ReLU between, none after the last) on the
   kernel at the frame border only mixes real pixel values and a constant image
   stays constant everywhere). Because the weights are a softmax and the
   padding replicates, each output pixel lies in the per-channel range (convex
-  hull) of its ``k x k`` neighbourhood in the noisy colour.
+  hull) of its ``k x k`` neighbourhood in the noisy colour. With ``demodulate``
+  (colour + albedo + normal specs) a learnt per-pixel weight blends in the same
+  kernel applied to the albedo-demodulated colour (no longer convex; still linear).
 * DPCN branch: the last conv predicts 3 channels ``r``, a correction of the
   noisy branch colour ``c`` in log space: ``expm1(max(log1p(c) + r, 0))``
   (``c`` clamped at 0). In linear space the same net had to output residuals
@@ -58,7 +60,7 @@ from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, get_input_spec, split_reconstruct
 from ..ops.kernel_apply import PADDING_MODES, KernelApply
 from .base import DenoiserModel
-from .layers import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
+from .layers import INPUT_TRANSFORMS, albedo_ratio, kernel_prior_bias, transform_input
 from .registry import register_model, register_weights
 
 __all__ = [
@@ -102,6 +104,15 @@ class BranchConfig:
             scalars): ``k' = g k + (1 - g) delta``. Still a convex kernel (constant stays
             constant, zero stays zero, light groups still sum), and a direct path by which
             a converged frame is left as it is. Starts nearly open (``g = 0.9975``).
+        demodulate: KPCN on a colour + albedo + normal spec: the last conv predicts one
+            more channel, a per-pixel weight ``beta = sigmoid(z)``, and the kernel ``w`` is
+            applied as ``(1 - beta) sum_q w_q c_q + beta (a_p + e) sum_q w_q c_q / (a_q + e)``
+            (``a``: mean albedo, ``e``: :data:`~kpcn.models.layers.DEMOD_EPS`): a blend of
+            filtering the colour and filtering the albedo-demodulated colour, which the
+            split specs' diffuse branch does and a colour-only input cannot. A bright
+            neighbour of another albedo (an emitter's edge) then lends its shading, not
+            its radiance. Still linear in the colour (light groups sum, zero stays zero,
+            a constant with a constant albedo stays constant), but no longer convex.
         input_transform: ``"log"`` feeds the conv stack ``sign(x) log1p(|x|)`` of
             the features (the kernels are still applied to the raw colour), so
             the network sees the same range whether the scene is dim or 1e8
@@ -121,6 +132,7 @@ class BranchConfig:
     dilations: list[int] | None = None
     input_transform: str = "log"
     precision_gate: bool = False
+    demodulate: bool = False
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -132,6 +144,9 @@ class BranchConfig:
         if self.precision_gate and spec.frame_stat is None:
             raise ValueError(f"BranchConfig.precision_gate needs an input spec with a noise precision channel "
                              f"(color_albedo_normal_noise), not {spec.name!r}")
+        if self.demodulate and spec.branches != ("color",):
+            raise ValueError(f"BranchConfig.demodulate needs a colour + albedo + normal input spec (one 'color' "
+                             f"branch, albedo in channels 3..5), not {spec.name!r}")
         if self.input_transform == "logvar" and spec.name != "kpcn_split":
             raise ValueError(f"BranchConfig.input_transform 'logvar' needs the kpcn_split input spec, not {spec.name!r}")
         for name in ("layers", "width", "conv_size", "kernel_size", "in_channels"):
@@ -192,6 +207,8 @@ def _conv_stack(cfg: BranchConfig, out_channels: int) -> nn.Sequential:
 #: the precision gate: ``sigmoid(GATE_SCALE * (a + c * p))``, (a, c) starting at (GATE_INIT, 0)
 GATE_SCALE = 10.0
 GATE_INIT = 0.6
+#: initial bias of the demodulation weight's logit (``demodulate``): ``beta = sigmoid(-4) = 0.018``
+DEMOD_INIT = -4.0
 
 
 def _check_branch_input(x: torch.Tensor, cfg: BranchConfig, who: str) -> None:
@@ -214,11 +231,13 @@ class KPCNBranch(nn.Module):
         super().__init__()
         self.config = config
         k = config.kernel_size
-        self.net = _conv_stack(config, k * k)
+        self.net = _conv_stack(config, k * k + int(config.demodulate))
         self.apply_kernels = KernelApply(k, config.padding_mode)  # no parameters: the state dict is unchanged
-        if config.init_sigma is not None:
-            with torch.no_grad():
-                self.net[-1].bias.copy_(self._prior_bias(config))
+        with torch.no_grad():
+            if config.init_sigma is not None:
+                self.net[-1].bias[: k * k].copy_(self._prior_bias(config))
+            if config.demodulate:
+                self.net[-1].bias[k * k :] = DEMOD_INIT
         # (a, c) of the precision gate sigmoid(GATE_SCALE * (a + c * p)); the scale lets Adam move them at the
         # network's learning rate by whole units over a run
         self.gate = nn.Parameter(torch.tensor([GATE_INIT, 0.0])) if config.precision_gate else None
@@ -238,7 +257,8 @@ class KPCNBranch(nn.Module):
         return max(self.config.network_radius, self.config.kernel_size // 2)
 
     def logits(self, x: torch.Tensor) -> torch.Tensor:
-        """Bounded kernel logits ``(B, k*k, H, W)`` (contiguous NCHW)."""
+        """Bounded kernel logits ``(B, k*k, H, W)`` (contiguous NCHW); with ``demodulate`` one more channel, the
+        demodulation weight's logit."""
         z = self.net(transform_input(x, self.config.input_transform)).contiguous()
         s = self.config.logit_scale
         if s is None:
@@ -246,15 +266,21 @@ class KPCNBranch(nn.Module):
         return torch.tanh(z / s) * s
 
     def kernels(self, x: torch.Tensor) -> torch.Tensor:
-        """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)``, taps in ``F.unfold`` order."""
+        """Per-pixel kernels ``(B, k*k, H, W)`` for the colour, taps in ``F.unfold`` order: a softmax (blended with
+        the identity by the precision gate), times the demodulation factor with ``demodulate``."""
         _check_branch_input(x, self.config, type(self).__name__)
-        k = torch.softmax(self.logits(x), dim=1)
-        if self.gate is None:
-            return k
-        g = self.precision_gate(x)
-        centre = torch.zeros_like(k[:1, :, :1, :1])
-        centre[:, k.shape[1] // 2] = 1.0
-        return g * k + (1.0 - g) * centre
+        z = self.logits(x)
+        kk = self.config.kernel_size**2
+        k = torch.softmax(z[:, :kk], dim=1)
+        if self.gate is not None:
+            g = self.precision_gate(x)
+            centre = torch.zeros_like(k[:1, :, :1, :1])
+            centre[:, kk // 2] = 1.0
+            k = g * k + (1.0 - g) * centre
+        if self.config.demodulate:
+            beta = torch.sigmoid(z[:, kk:])
+            k = k * (1.0 - beta + beta * albedo_ratio(x[:, 3:6], self.config.kernel_size))
+        return k
 
     def precision_gate(self, x: torch.Tensor) -> torch.Tensor:
         """The gate ``(B, 1, H, W)`` in (0, 1) from the precision channel (the last) of ``x``; 1: the kernels as predicted."""
@@ -325,10 +351,13 @@ class Denoiser(DenoiserModel):
             raise ValueError(f"Denoiser: kind must be one of {sorted(_BRANCHES)}, got {kind!r}")
         if kind != "kpcn" and config is not None and config.precision_gate:
             raise ValueError(f"Denoiser: precision_gate blends kernels; {kind} predicts none")
+        if kind != "kpcn" and config is not None and config.demodulate:
+            raise ValueError(f"Denoiser: demodulate weights kernels; {kind} predicts none")
         super().__init__(config if config is not None else BranchConfig())
         self.kind = self.name = kind
         self.zero_preserving = kind == "kpcn"  # a convex combination of zeros is zero
-        self.convex_kernels = kind == "kpcn"  # softmax weights over the k x k neighbourhood
+        # softmax weights over the k x k neighbourhood (demodulated ones are not convex in the colour)
+        self.convex_kernels = kind == "kpcn" and not self.config.demodulate
         self.kernel_padding = self.config.padding_mode if kind == "kpcn" else None
         cls = _BRANCHES[kind]
         for b in self.branches:

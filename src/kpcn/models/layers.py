@@ -4,20 +4,27 @@
   signed ``log1p``, so a dim scene and a 1e8-bright one have the same range;
   ``logvar``: variances as ``log(var + 1e-6)``);
 * :func:`kernel_prior_bias`: the bias of a kernel head so that a fresh model's
-  kernels are a Gaussian.
+  kernels are a Gaussian;
+* :func:`albedo_ratio`: the per-tap factor that turns a kernel applied to the
+  colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``).
 """
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from ..inputs import get_input_spec
 
-__all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "transform_input", "kernel_prior_bias"]
+__all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
+           "kernel_prior_bias", "albedo_ratio"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
 VARIANCE_CHANNELS = get_input_spec("kpcn_split").variance_channels  # (3, 24, 25, 26)
 VARIANCE_FLOOR = 1e-6
+#: added to the mean albedo before demodulating by it (a black surface would divide by ~0; with 0.003, the
+#: split specs' EPS, demodulating the whole colour lost 4 dB on glossy black surfaces)
+DEMOD_EPS = 0.1
 
 
 def transform_input(x: torch.Tensor, kind: str) -> torch.Tensor:
@@ -54,3 +61,27 @@ def kernel_prior_bias(k: int, sigma: float, logit_scale: float | None) -> torch.
         return prior.clamp(min=-30.0).float()
     prior = prior.clamp(min=-0.5 * s)
     return (s * torch.atanh(prior / s)).float()
+
+
+def albedo_ratio(albedo: torch.Tensor, kernel_size: int, eps: float = DEMOD_EPS) -> torch.Tensor:
+    """``(a_p + eps) / (a_q + eps)`` for every pixel ``p`` and tap ``q`` of its ``k x k`` neighbourhood.
+
+    ``a`` is the channel mean of the albedo (clamped at 0); taps are in
+    ``F.unfold`` order, and the border is replicated as
+    :func:`kpcn.ops.kernel_apply` replicates the colour. A kernel ``w`` times
+    this ratio, applied to the colour ``c``, equals ``(a_p + eps) * sum_q w_q
+    c_q / (a_q + eps)``: the kernel applied to the albedo-demodulated colour and
+    remodulated, so texture is kept where the kernel averages shading.
+
+    Args:
+        albedo: ``(B, 3, H, W)`` (or ``(B, 1, H, W)``).
+        kernel_size: odd ``k``.
+
+    Returns:
+        ``(B, k*k, H, W)``, positive and finite; 1 at the centre tap.
+    """
+    b, _, h, w = albedo.shape
+    r = kernel_size // 2
+    a = albedo.clamp_min(0.0).mean(dim=1, keepdim=True) + eps
+    taps = F.unfold(F.pad(a, (r, r, r, r), mode="replicate"), kernel_size).view(b, kernel_size * kernel_size, h, w)
+    return a / taps
