@@ -395,7 +395,7 @@ register_weights("kpcn", "can_small", "kpcn_can_small.safetensors",
                  description="KPCN 5x32 on colour + albedo + normal only (configs/small_can.yaml, 30 procedural scenes), "
                              "fine-tuned on 32 Blender Cycles scenes (configs/small_can_cycles.yaml, _b, _c), then with "
                              "the frame's estimated noise precision as an input (configs/small_can_noise.yaml, _b), then "
-                             "with kernels partly applied to the albedo-demodulated colour (configs/small_can_demod.yaml, _b); "
+                             "with kernels partly applied to the albedo-demodulated colour (configs/small_can_demod.yaml, _b, _c, _d); "
                              "reads OIDN's albedo (Cycles' Denoising Albedo) where a file has it")
 register_weights("kpcn", "novar_small", "kpcn_novar_small.safetensors",
                  description="KPCN 5x32 on the diffuse/specular split without variances (configs/small_novar.yaml, "
