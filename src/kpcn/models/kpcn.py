@@ -400,6 +400,6 @@ register_weights("kpcn", "can_small", "kpcn_can_small.safetensors",
 register_weights("kpcn", "novar_small", "kpcn_novar_small.safetensors",
                  description="KPCN 5x32 on the diffuse/specular split without variances (configs/small_novar.yaml, "
                              "30 procedural scenes), fine-tuned on 32 Blender Cycles scenes "
-                             "(configs/small_novar_cycles.yaml, _b, _c)")
+                             "(configs/small_novar_cycles.yaml, _b, _c, _d)")
 register_weights("dpcn", "small", "dpcn_small.safetensors",
                  description="DPCN 5x32, 5x5 convs (configs/small_dpcn.yaml), 44 procedural scenes")
