@@ -349,10 +349,9 @@ class Denoiser(DenoiserModel):
     def __init__(self, kind: str, config: BranchConfig | None = None) -> None:
         if kind not in _BRANCHES:
             raise ValueError(f"Denoiser: kind must be one of {sorted(_BRANCHES)}, got {kind!r}")
-        if kind != "kpcn" and config is not None and config.precision_gate:
-            raise ValueError(f"Denoiser: precision_gate blends kernels; {kind} predicts none")
-        if kind != "kpcn" and config is not None and config.demodulate:
-            raise ValueError(f"Denoiser: demodulate weights kernels; {kind} predicts none")
+        for option, what in (("precision_gate", "blends"), ("demodulate", "weights")):  # options of kernels
+            if kind != "kpcn" and config is not None and getattr(config, option):
+                raise ValueError(f"Denoiser: {option} {what} kernels; {kind} predicts none")
         super().__init__(config if config is not None else BranchConfig())
         self.kind = self.name = kind
         self.zero_preserving = kind == "kpcn"  # a convex combination of zeros is zero
