@@ -90,7 +90,8 @@ def _parse_size(text: str) -> tuple[int, int]:
     raise argparse.ArgumentTypeError(f"size must be N or WxH, got {text!r}")
 
 
-def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int) -> dict:
+def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int,
+                     rows: bool = True) -> dict:
     import gc
 
     import numpy as np
@@ -128,11 +129,11 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         extra["macs_per_px"] = macs_per_pixel(model)
 
         def run():
-            r = denoise_result(frame, model, tile=tile, device="cpu")
+            r = denoise_result(frame, model, tile=tile, device="cpu", rows=rows)
             extra.update(stats=r.stats.summary(), halo=r.stats.halo, tiles=r.stats.tiles)
             return r.color
 
-        denoise_result(frame.crop(0, min(h, 64), 0, min(w, 64)), model, tile=tile, device="cpu")
+        denoise_result(frame.crop(0, min(h, 64), 0, min(w, 64)), model, tile=tile, device="cpu", rows=rows)
     gc.collect()
     rss_before_kb = _proc_status_kb("VmRSS")
     reset_ok = _reset_peak_rss()
@@ -191,8 +192,8 @@ def _oidn_set_threads(n: int) -> str:
         return f"default (could not set: {exc})"
 
 
-def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout) -> dict:
-    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats), timeout)
+def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout, rows=True) -> dict:
+    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats, rows), timeout)
 
 
 def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
@@ -215,6 +216,8 @@ class DenoiseBenchConfig:
         "help": "configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
                 "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); --skip: the first"})
     oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
+    rows: bool = field(default=True, metadata={
+        "help": "run whole frames at once, not a band of rows at a time (models with row streams; the A/B baseline)"})
     tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default: auto, the whole frame up to 1920x1080; --skip: 64)"})
     scene: str = field(default="random:3", metadata={"help": "scene to render"})
     spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
@@ -282,7 +285,7 @@ def bench_denoise(argv: list[str]) -> int:
                 model_name, kw = (specs[name][0], specs[name][1]) if impl == "kpcn" else ("", {})
                 print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
                 t0 = time.perf_counter()
-                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout)
+                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout, args.rows)
                 r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
                 print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
                 results.append(r)
@@ -292,7 +295,7 @@ def bench_denoise(argv: list[str]) -> int:
 
     ok = [r for r in results if r.get("status") == "ok"]
     print(f"\ndenoise benchmark: scene {args.scene} at {args.spp} spp (rendered with Mitsuba at each size), kpcn tile {tile}, "
-          f"random-init weights, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
+          f"random-init weights, {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
     for name in args.models:
         model_name, kw, origin = specs[name]
         print(f"  {name}: {model_name} {kw} (from {origin})")

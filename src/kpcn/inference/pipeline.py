@@ -14,6 +14,10 @@ How a frame is processed
   whole-frame context gets it computed once, over the whole frame
   (:meth:`~kpcn.models.DenoiserModel.frame_context`), and every tile uses it.
   So tiled equals untiled, to float rounding.
+* **Row bands**: a frame run whole (one tile) by a model with row streams (the
+  ``stem: half`` U-Net) goes through :mod:`.rows` instead: features built a band
+  of rows at a time, the network once at half resolution, the output assembled
+  band by band (same result to float rounding; ``rows=False`` turns it off).
 * **What a frame does not need is left out** (``skip=True``, the default):
 
   - a branch with no positive radiance anywhere in the frame is not run and
@@ -41,6 +45,7 @@ from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
+from .rows import denoise_rows, supports_rows
 from .tiling import auto_tile, plan_tiles, tile_size
 from .weights import choose_default, describe, load_model, resolve_device
 
@@ -142,6 +147,7 @@ def denoise_result(
     trust_pickle: bool = False,
     layers=None,
     aov_branch: str | None = None,
+    rows: bool = True,
 ) -> DenoiseResult:
     """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour, ``layers`` and :class:`DenoiseStats`)."""
     if tile != "auto" and tile is not None and (isinstance(tile, (bool, str)) or int(tile) != tile):
@@ -197,6 +203,7 @@ def denoise_result(
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
+    use_rows = rows and not plans and not use_half and supports_rows(net)
     with torch.inference_mode():
         context = None
         tiles = list(plan_tiles(h, w, tile, halo, align))
@@ -230,6 +237,10 @@ def denoise_result(
             if not run:  # every component is zero
                 out[t.interior] = 0.0
                 stats.tiles_zero += 1
+                continue
+            if use_rows and crop == (slice(0, h), slice(0, w)):  # the whole frame, a band of rows at a time
+                out[...], stats.row_bands = denoise_rows(frame, net, spec, frame_value, run, dev, _tensors)
+                stats.tiles_run += 1
                 continue
             inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)
             with _autocast(use_half):
@@ -288,6 +299,7 @@ def denoise(
     trust_pickle: bool = False,
     layers=None,
     aov_branch: str | None = None,
+    rows: bool = True,
 ):
     """Denoise one render and return its colour ``(H, W, 3)`` float32 (finite, >= 0).
 
@@ -321,6 +333,9 @@ def denoise(
             the beauty's kernels (kernel predictors only); written to ``out_path`` too.
         aov_branch: the branch whose kernels filter layers that are not light groups
             (default: the spec's first branch).
+        rows: a frame denoised whole by a model with row streams (the ``stem: half`` U-Net, the
+            default) is run a band of rows at a time (:mod:`kpcn.inference.rows`: the same result to
+            float rounding, in less time and memory); ``False``: the whole frame at once.
 
     Raises:
         MissingLayerError: the input lacks layers the model needs (names them and those found).
@@ -329,5 +344,5 @@ def denoise(
         IsADirectoryError / NotADirectoryError: ``out_path`` is a folder, or under a file; raised first too.
     """
     res = denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
-                         trust_pickle=trust_pickle, layers=layers, aov_branch=aov_branch)
+                         trust_pickle=trust_pickle, layers=layers, aov_branch=aov_branch, rows=rows)
     return {"color": res.color, **res.layers} if layers else res.color

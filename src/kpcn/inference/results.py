@@ -30,6 +30,8 @@ class DenoiseStats:
         nonfinite: NaN/Inf values replaced per layer (by the reader or here).
         noise_precision: the frame's estimated noise precision (:mod:`kpcn.noise`) for models whose
             input spec reads it; None otherwise.
+        row_bands: the whole frame was run a band of rows at a time (:mod:`kpcn.inference.rows`), in
+            this many bands; 0: it was not.
     """
 
     seconds: float = 0.0
@@ -53,10 +55,13 @@ class DenoiseStats:
     peak_cuda_mb: float | None = None
     nonfinite: dict[str, int] = field(default_factory=dict)
     noise_precision: float | None = None
+    row_bands: int = 0
 
     def summary(self) -> str:
         h, w = self.size
         parts = [f"{w}x{h}", f"{self.seconds:.2f} s", f"tiles run {self.tiles_run}/{self.tiles}"]
+        if self.row_bands:
+            parts.append(f"in {self.row_bands} row bands")
         if self.tiles_passed_through:
             parts.append(f"passed through {self.tiles_passed_through}")
         if self.tiles_zero:

@@ -56,7 +56,7 @@ from torch import nn
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
-from .layers import INPUT_TRANSFORMS, kernel_prior_bias, transform_input
+from .layers import INPUT_TRANSFORMS, Conv1x1, conv1x1, kernel_prior_bias, pool2, transform_input
 from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
@@ -182,16 +182,16 @@ class UNetBranch(nn.Module):
         # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
         # every level but the coarsest adds one blending-weight channel
         off = cfg.offset
-        self.guide = nn.Conv2d(c_in, cfg.guide_channels, 1) if off else None
+        self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if off else None
         self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), k * k + (1 if n > 1 else 0),
-                                    GuidedHead if off else nn.Conv2d)
+                                    GuidedHead if off else Conv1x1)
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
 
-    def _make_head(self, width: int, out: int, kind=nn.Conv2d) -> nn.Conv2d:
+    def _make_head(self, width: int, out: int, kind=None) -> nn.Conv2d:
         k, cfg = self.cfg.kernel_size, self.cfg
-        head = kind(width, out, 1)
+        head = (kind or Conv1x1)(width, out, 1)
         nn.init.kaiming_normal_(head.weight, nonlinearity="linear")
         with torch.no_grad():
             head.weight.mul_(cfg.out_init_gain)
@@ -207,16 +207,41 @@ class UNetBranch(nn.Module):
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Encoder features of every level, finest first (input padded to the alignment)."""
         if self.cfg.offset:  # pool the linear features, then transform them
-            h = transform_input(F.avg_pool2d(self._pad(x), 2), self.cfg.input_transform)
+            h = transform_input(pool2(self._pad(x)), self.cfg.input_transform)
         else:
             h = self._pad(transform_input(x, self.cfg.input_transform))
+        return self.encode_from(h)
+
+    def encode_from(self, h: torch.Tensor) -> list[torch.Tensor]:
+        """The encoder on the first level's input ``(B, C, H', W')`` (transformed, padded, pooled with ``stem: half``).
+
+        Without autograd the levels run ``channels_last`` (on the CPU, oneDNN's convolutions take half
+        the time in that layout: no reordering around each call).
+        """
+        if not torch.is_grad_enabled():
+            h = h.contiguous(memory_format=torch.channels_last)
         feats = []
         for level, block in enumerate(self.enc):
             if level:
-                h = F.avg_pool2d(h, 2)
+                h = pool2(h)
             h = block(h)
             feats.append(h)
         return feats
+
+    def decode(self, feats: list[torch.Tensor], summary: torch.Tensor | None = None):
+        """The global summary and the decoder: ``(finest decoder level, {level: decoder output})``."""
+        h = feats[-1]
+        if self.summary is not None:
+            if summary is None:
+                summary = self.summarize(h)
+            h = torch.cat([h, summary.expand(-1, -1, h.shape[-2], h.shape[-1])], dim=1)
+            if feats[-1].is_contiguous(memory_format=torch.channels_last) and not feats[-1].is_contiguous():
+                h = h.contiguous(memory_format=torch.channels_last)  # the expanded summary made it NCHW
+        decoded = {}
+        for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
+            h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
+            decoded[level] = h
+        return h, decoded
 
     def summarize(self, bottleneck: torch.Tensor) -> torch.Tensor | None:
         """The global summary ``(B, summary_channels, 1, 1)`` of a bottleneck (None without one)."""
@@ -236,16 +261,7 @@ class UNetBranch(nn.Module):
         weights of every level, at the padded size), which ``apply_kernels`` takes the same way.
         """
         h_in, w_in = x.shape[-2:]
-        feats = self.encode(x)
-        h = feats[-1]
-        if self.summary is not None:
-            if summary is None:
-                summary = self.summarize(h)
-            h = torch.cat([h, summary.expand(-1, -1, h.shape[-2], h.shape[-1])], dim=1)
-        decoded = {}
-        for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
-            h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
-            decoded[level] = h
+        h, decoded = self.decode(self.encode(x), summary)
         s, kk, off = self.cfg.logit_scale, self.cfg.kernel_size**2, self.cfg.offset
         if off:  # full resolution: the finest level upsampled, beside the guide of the full-resolution features
             # a 1x1 conv and a ReLU are per pixel, so they commute with replicate padding: pad the
@@ -269,11 +285,16 @@ def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
         return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
     # inference: in place (frames are large); the bounded logits lie in [-s, s], so exp cannot overflow
     # for s <= 80 and no maximum need be subtracted (equal to torch.softmax to float rounding)
-    t = (z / s).tanh_().mul_(s)
+    t = _bounded_logits(z, s)
     if s > 80:
         return torch.softmax(t, dim=1).contiguous()
     t.exp_()
     return t.div_(t.sum(dim=1, keepdim=True)).contiguous()
+
+
+def _bounded_logits(z: torch.Tensor, s: float) -> torch.Tensor:
+    """``s * tanh(z / s)`` (a new tensor; computed in place on it)."""
+    return (z / s).tanh_().mul_(s)
 
 
 @dataclass(frozen=True)
@@ -302,14 +323,19 @@ class MultiScaleApply(nn.Module):
         level_colour = colour
         for level, k in enumerate(ks.kernels):
             if level:
-                level_colour = F.avg_pool2d(level_colour, 2)
+                level_colour = pool2(level_colour)
             filtered.append(self.apply_one(level_colour.contiguous(), k))
-        out = filtered[-1]
-        for level in range(len(filtered) - 2, -1, -1):
-            f, alpha = filtered[level], ks.alphas[level]
-            up = F.interpolate(out - F.avg_pool2d(f, 2), scale_factor=2, mode="bilinear", align_corners=False)
-            out = f + alpha * up
-        return out[..., :h, :w]
+        return combine_levels(filtered, ks.alphas)[..., :h, :w]
+
+
+def combine_levels(filtered, alphas) -> torch.Tensor:
+    """Coarse to fine, ``o_l = f_l + α_l · U(o_{l+1} - D(f_l))`` over filtered levels ``(B, 3, H/2**l, W/2**l)``."""
+    out = filtered[-1]
+    for level in range(len(filtered) - 2, -1, -1):
+        f, alpha = filtered[level], alphas[level]
+        up = F.interpolate(out - pool2(f), scale_factor=2, mode="bilinear", align_corners=False)
+        out = f + alpha * up
+    return out
 
 
 class GuidedHead(nn.Conv2d):
@@ -325,9 +351,9 @@ class GuidedHead(nn.Conv2d):
     def forward(self, pair):  # type: ignore[override]
         coarse, guide = pair
         c = coarse.shape[1]
-        low = F.conv2d(coarse, self.weight[:, :c], self.bias)
+        low = conv1x1(coarse, self.weight[:, :c], self.bias)
         up = F.interpolate(low, scale_factor=2, mode="bilinear", align_corners=False)
-        return up.add_(F.conv2d(guide, self.weight[:, c:]))  # in place: one full-size tensor fewer
+        return up.add_(conv1x1(guide, self.weight[:, c:]))  # in place: one full-size tensor fewer
 
     def macs(self, pair, out) -> int:
         """Multiply-adds of one call per image (for :func:`kpcn.models.cost.macs_per_pixel`)."""
@@ -362,6 +388,17 @@ class UNetKPCN(DenoiserModel):
     def convex_kernels(self) -> bool:
         """One full-resolution kernel: convex; the multi-scale combination ``f + α·U(o - D f)`` is not."""
         return self.config.kernel_scales == 1
+
+    @property
+    def streams_rows(self) -> bool:
+        """``stem: half``: a frame can be run a band of rows at a time (:meth:`row_stream`)."""
+        return self.config.offset == 1
+
+    def row_stream(self, name: str, height: int, width: int, device=None):
+        """A :class:`~kpcn.models.unet_rows.RowStream` of branch ``name`` for a ``height × width`` frame."""
+        from .unet_rows import RowStream
+
+        return RowStream(getattr(self, name), height, width, device)
 
     def frame_context(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
         """Each present branch's global summary over the whole frame ``{branch: (B, S, 1, 1)}``."""

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["kernel_apply", "kernel_apply_unfold", "KernelApply", "PADDING_MODES"]
+__all__ = ["kernel_apply", "kernel_apply_padded", "kernel_apply_unfold", "KernelApply", "PADDING_MODES"]
 
 PADDING_MODES = ("zeros", "replicate")
 
@@ -164,6 +164,21 @@ def kernel_apply(
     """
     _check_inputs(image, weights, kernel_size, padding_mode)
     padded = _pad(image, kernel_size // 2, padding_mode)
+    return _ShiftLoopKernelApply.apply(padded, weights, kernel_size)
+
+
+def kernel_apply_padded(padded: torch.Tensor, weights: torch.Tensor, kernel_size: int) -> torch.Tensor:
+    """:func:`kernel_apply` on an image the caller has already padded by ``r = k // 2`` on every side.
+
+    ``padded`` ``(B, C, H + 2r, W + 2r)``, ``weights`` ``(B, k*k, H, W)`` -> ``(B, C, H, W)``. For a
+    caller that pads with real neighbours (a band of rows of a larger image) rather than a border rule.
+    """
+    r = kernel_size // 2
+    if padded.dim() != 4 or weights.dim() != 4 or padded.shape[-2] != weights.shape[-2] + 2 * r \
+            or padded.shape[-1] != weights.shape[-1] + 2 * r:
+        raise ValueError(f"kernel_apply_padded: padded {tuple(padded.shape)} must be weights {tuple(weights.shape)} "
+                         f"grown by {r} on every side")
+    _check_inputs(padded[..., r:padded.shape[-2] - r, r:padded.shape[-1] - r], weights, kernel_size, "zeros")
     return _ShiftLoopKernelApply.apply(padded, weights, kernel_size)
 
 

@@ -1,0 +1,127 @@
+"""Row-band inference of the ``stem: half`` U-Net (:mod:`kpcn.models.unet_rows`, :mod:`kpcn.inference.rows`)
+and the layers written for it (:func:`pool2`, :func:`conv1x1`, :func:`kernel_apply_padded`).
+
+The frame is a real render (Mitsuba, tiny) whose size is not a multiple of the U-Net's alignment; the
+models are random-init with sharp kernels, so a band that read a wrong row shows up as a large error.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from kpcn import inference
+from kpcn.inference.pipeline import _tensors
+from kpcn.inference.rows import denoise_rows
+from kpcn.models import create_model
+from kpcn.models import unet_rows
+from kpcn.models.layers import conv1x1, pool2
+from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
+
+FRAME_RES = (150, 117)  # width, height: neither a multiple of the alignment (16)
+
+
+@pytest.fixture(scope="module")
+def frame(render):
+    return render("test:glossy", spp=4, seed=1, resolution=FRAME_RES)
+
+
+def _model(**kw):
+    torch.manual_seed(0)
+    cfg = dict(widths=[8, 8, 12, 12], stem="half", kernel_scales=3, out_init_gain=5.0)
+    cfg.update(kw)
+    return create_model("unet_kpcn", **cfg).eval()
+
+
+def _rel(a, b) -> float:
+    return float(np.abs(a - b).max() / max(np.abs(a).max(), 1e-12))
+
+
+@pytest.mark.parametrize("kw", [{}, {"kernel_scales": 1}, {"kernel_scales": 2, "kernel_size": 3},
+                                {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
+                                {"input_spec": "color_albedo_normal_noise"}],
+                         ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")
+@pytest.mark.parametrize("band", [32, 6])
+def test_row_bands_equal_the_whole_frame(frame, monkeypatch, kw, band):
+    monkeypatch.setattr(unet_rows, "BAND_ROWS", band)
+    model = _model(**kw)
+    whole = inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, rows=False)
+    res = inference.denoise_result(frame, model, tile=0, device="cpu", skip=False)
+    assert whole.stats.row_bands == 0 and res.stats.row_bands == -(-128 // band), "the default must take the row path"
+    assert res.color.shape == whole.color.shape and np.isfinite(res.color).all()
+    assert _rel(whole.color, res.color) < 1e-5, f"{kw} band {band}: {_rel(whole.color, res.color):.3g}"
+
+
+def test_row_bands_read_the_rows_around_them(frame):
+    """Negative control: a band that does not read the row below it (the forward differences) differs."""
+    model = _model()
+    spec = model.input_spec
+    whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False, rows=False)
+    frame_value = spec.frame_value(frame)
+    with torch.inference_mode():
+        right, bands = denoise_rows(frame, model, spec, frame_value, spec.branches, torch.device("cpu"), _tensors, band=8)
+        wrong, _ = denoise_rows(frame, model, dataclasses.replace(spec, halo=0), frame_value, spec.branches,
+                             torch.device("cpu"), _tensors, band=8)
+    assert bands == 16 and _rel(whole, right) < 1e-5  # 117 rows padded to 128, in bands of 8
+    assert _rel(whole, wrong) > 1e-3
+
+
+def test_row_stream_refuses_misuse():
+    model = _model()
+    s = model.row_stream("diffuse", 40, 40)
+    assert s.padded_size == (48, 48)
+    with pytest.raises(ValueError, match="run\\(\\) first"):
+        s.rows(0, 8)
+    with torch.inference_mode():
+        with pytest.raises(ValueError, match="from row 0"):
+            s.feed(8, torch.zeros(1, 27, 8, 48))
+        with pytest.raises(ValueError, match="even number of rows"):
+            s.feed(0, torch.zeros(1, 27, 7, 48))
+        with pytest.raises(ValueError, match="rows 0..0 of 48 fed"):
+            s.run()
+    with pytest.raises(ValueError, match="stem: half"):
+        _model(stem="full").row_stream("diffuse", 40, 40)
+    assert not _model(stem="full").streams_rows
+
+
+def test_pool2_is_the_2x2_average():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 5, 6, 10, generator=g, dtype=torch.float64)
+    assert torch.allclose(pool2(x), F.avg_pool2d(x, 2), atol=1e-15)
+    cl = x.contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(pool2(cl), F.avg_pool2d(x, 2), atol=1e-15)
+    assert torch.autograd.gradcheck(pool2, (x[:1, :2].clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("layout", ["nchw", "channels_last", "strided"])
+@pytest.mark.parametrize("batch", [1, 3])
+def test_conv1x1_is_the_1x1_convolution(layout, batch):
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(batch, 6, 5, 7, generator=g, dtype=torch.float64)
+    w = torch.randn(4, 6, 1, 1, generator=g, dtype=torch.float64)
+    b = torch.randn(4, generator=g, dtype=torch.float64)
+    if layout == "channels_last":
+        x = x.contiguous(memory_format=torch.channels_last)
+    elif layout == "strided":
+        x = torch.randn(batch, 6, 5, 14, generator=g, dtype=torch.float64)[..., ::2]
+    for bias in (b, None):
+        out = conv1x1(x, w, bias)
+        assert out.is_contiguous() and torch.allclose(out, F.conv2d(x, w, bias), atol=1e-12)
+    xs = x.detach().clone().requires_grad_()
+    ws, bs = w.clone().requires_grad_(), b.clone().requires_grad_()
+    assert torch.autograd.gradcheck(conv1x1, (xs, ws, bs))
+
+
+def test_kernel_apply_padded_takes_real_neighbours():
+    g = torch.Generator().manual_seed(2)
+    image = torch.randn(1, 3, 20, 9, generator=g, dtype=torch.float64)
+    weights = torch.softmax(torch.randn(1, 25, 20, 9, generator=g, dtype=torch.float64), dim=1)
+    full = kernel_apply(image, weights, 5, "replicate")
+    # rows 6..14 from a band padded with its real neighbour rows and replicated columns
+    band = F.pad(image[..., 4:16, :], (2, 2, 0, 0), mode="replicate")
+    assert torch.allclose(kernel_apply_padded(band, weights[..., 6:14, :], 5), full[..., 6:14, :], atol=1e-12)
+    with pytest.raises(ValueError, match="grown by 2"):
+        kernel_apply_padded(image, weights, 5)
