@@ -125,3 +125,18 @@ def test_kernel_apply_padded_takes_real_neighbours():
     assert torch.allclose(kernel_apply_padded(band, weights[..., 6:14, :], 5), full[..., 6:14, :], atol=1e-12)
     with pytest.raises(ValueError, match="grown by 2"):
         kernel_apply_padded(image, weights, 5)
+
+
+def test_auto_tiles_only_beyond_what_row_bands_hold(frame, monkeypatch):
+    """``tile="auto"``: a model with row streams takes frames whole up to 4096², others up to ~1080p."""
+    from kpcn.inference import tiling
+
+    assert tiling.auto_tile(1080, 1920, 134, 16) is None and tiling.auto_tile(2160, 3840, 134, 16) == 544
+    assert tiling.auto_tile(2160, 3840, 134, 16, rows=True) is None
+    assert tiling.auto_tile(4112, 4096, 134, 16, rows=True) == 544
+    # the pipeline asks for the row limit exactly when it will use row bands
+    monkeypatch.setattr(tiling, "WHOLE_FRAME_PIXELS", 100)  # this frame is "large" for the tile path
+    rows = inference.denoise_result(frame, _model(), device="cpu")
+    tiled = inference.denoise_result(frame, _model(), device="cpu", rows=False)
+    assert rows.stats.tile == max(FRAME_RES) and rows.stats.row_bands > 0  # the whole frame
+    assert tiled.stats.tile >= 512 and tiled.stats.row_bands == 0  # auto tiles (this frame fits in one)

@@ -177,9 +177,10 @@ def denoise_result(
     aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
-    if tile == "auto":
-        tile = auto_tile(h, w, halo, align)
     use_half = bool(half) and dev.type == "cuda"
+    use_rows = rows and not plans and not use_half and supports_rows(net)
+    if tile == "auto":
+        tile = auto_tile(h, w, halo, align, rows=use_rows)
     if half and not use_half:
         warnings.warn("denoise: half=True is only used on CUDA; running float32 on the CPU", RuntimeWarning, stacklevel=2)
 
@@ -203,7 +204,6 @@ def denoise_result(
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
-    use_rows = rows and not plans and not use_half and supports_rows(net)
     with torch.inference_mode():
         context = None
         tiles = list(plan_tiles(h, w, tile, halo, align))
@@ -322,7 +322,8 @@ def denoise(
             under any spelling: relative, through a symlink, or a hard link of it.
         tile: interior tile size in pixels (rounded up to the model's alignment);
             ``None`` or ``0``: the whole frame at once; ``"auto"`` (default): the whole frame
-            up to about 1920x1080 (fastest: nothing is computed twice), larger frames in tiles
+            up to about 1920x1080 (fastest: nothing is computed twice; up to 4096x4096 for a
+            model that runs whole frames in row bands), larger frames in tiles
             of ``max(512, 4 * halo)`` (:func:`kpcn.inference.tiling.auto_tile`).
         device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"``, ...
         half: float16 autocast on CUDA (ignored, with a warning, on the CPU).

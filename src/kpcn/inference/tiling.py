@@ -14,10 +14,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator
 
-__all__ = ["Tile", "plan_tiles", "tile_size", "auto_tile", "WHOLE_FRAME_PIXELS"]
+__all__ = ["Tile", "plan_tiles", "tile_size", "auto_tile", "WHOLE_FRAME_PIXELS", "ROWS_WHOLE_FRAME_PIXELS"]
 
 #: ``tile="auto"`` denoises frames up to this many pixels (1920x1080 and a little more) whole
 WHOLE_FRAME_PIXELS = 2_100_000
+#: ... and up to this many (4096x4096) with a model that runs whole frames in row bands
+#: (:mod:`kpcn.inference.rows`: about 350 bytes a pixel, 2.9 GB at 3840x2160, and no halo computed twice)
+ROWS_WHOLE_FRAME_PIXELS = 4096 * 4096
 
 
 @dataclass(frozen=True)
@@ -54,10 +57,11 @@ def tile_size(tile: int | None, alignment: int = 1) -> int | None:
     return -(-int(tile) // a) * a
 
 
-def auto_tile(height: int, width: int, halo: int, alignment: int = 1) -> int | None:
-    """The tile ``tile="auto"`` uses: None (the whole frame) up to :data:`WHOLE_FRAME_PIXELS`, else
+def auto_tile(height: int, width: int, halo: int, alignment: int = 1, rows: bool = False) -> int | None:
+    """The tile ``tile="auto"`` uses: None (the whole frame) up to :data:`WHOLE_FRAME_PIXELS`
+    (:data:`ROWS_WHOLE_FRAME_PIXELS` when the model runs whole frames in row bands, ``rows``), else
     interiors of ``max(512, 4 * halo)`` pixels, so that the halo (computed twice) stays a small part."""
-    if height * width <= WHOLE_FRAME_PIXELS:
+    if height * width <= (ROWS_WHOLE_FRAME_PIXELS if rows else WHOLE_FRAME_PIXELS):
         return None
     return tile_size(max(512, 4 * int(halo)), alignment)
 

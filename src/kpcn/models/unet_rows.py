@@ -102,8 +102,7 @@ class RowStream:
         if self._fed != self.padded_size[0]:
             raise ValueError(f"RowStream.run: rows 0..{self._fed} of {self.padded_size[0]} fed")
         net, cfg = self.branch, self.cfg
-        h, decoded = net.decode(net.encode_from(self._pooled), summary)
-        self._pooled = None
+        h, decoded = net.decode(net.encode_from(self._release_pooled()), summary)
         c = h.shape[1]
         self._low = conv1x1(h, net.head.weight[:, :c], net.head.bias)  # the guided head's half-resolution part
         self._wg = net.head.weight[:, c:].reshape(net.head.out_channels, -1)
@@ -120,6 +119,11 @@ class RowStream:
                 filtered.append(_apply_softmax_kernels(padded, z[:, :kk], s, cfg.kernel_size))
             self._coarse = combine_levels(filtered, alphas)
         self._colour_half = None
+
+    def _release_pooled(self) -> torch.Tensor:
+        """The pooled features, no longer held here: the encoder frees them after its first conv."""
+        pooled, self._pooled = self._pooled, None
+        return pooled
 
     def rows(self, r0: int, r1: int) -> torch.Tensor:
         """Output rows ``[r0, r1)`` (even) of the padded frame, ``(1, 3, r1 - r0, padded width)``, branch space."""
