@@ -62,8 +62,9 @@ def test_row_bands_read_the_rows_around_them(frame):
     whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False, rows=False)
     frame_value = spec.frame_value(frame)
     with torch.inference_mode():
-        right, bands = denoise_rows(frame, model, spec, frame_value, spec.branches, torch.device("cpu"), _tensors, band=8)
-        wrong, _ = denoise_rows(frame, model, dataclasses.replace(spec, halo=0), frame_value, spec.branches,
+        right, _, bands = denoise_rows(frame, model, spec, frame_value, spec.branches, torch.device("cpu"), _tensors,
+                                       band=8)
+        wrong, _, _ = denoise_rows(frame, model, dataclasses.replace(spec, halo=0), frame_value, spec.branches,
                              torch.device("cpu"), _tensors, band=8)
     assert bands == 16 and _rel(whole, right) < 1e-5  # 117 rows padded to 128, in bands of 8
     assert _rel(whole, wrong) > 1e-3
@@ -140,3 +141,28 @@ def test_auto_tiles_only_beyond_what_row_bands_hold(frame, monkeypatch):
     tiled = inference.denoise_result(frame, _model(), device="cpu", rows=False)
     assert rows.stats.tile == max(FRAME_RES) and rows.stats.row_bands > 0  # the whole frame
     assert tiled.stats.tile >= 512 and tiled.stats.row_bands == 0  # auto tiles (this frame fits in one)
+
+
+@pytest.fixture(scope="module")
+def groups(mi):
+    from kpcn.render.groups import render_light_groups
+
+    return render_light_groups("test:textured", spp=8, seed=1, resolution=(50, 38))
+
+
+@pytest.mark.parametrize("kw", [{}, {"input_spec": "color_albedo_normal", "kernel_scales": 2}],
+                         ids=["split", "colour"])
+def test_row_bands_denoise_light_groups_and_other_layers_as_the_whole_frame(groups, monkeypatch, kw):
+    """Light groups (and a layer filtered directly) in row bands equal the whole-frame result; they sum to the beauty."""
+    monkeypatch.setattr(unet_rows, "BAND_ROWS", 6)
+    model = _model(**kw)
+    names = groups.meta["lightGroups"].split(",")
+    layers = names + ["albedo"]  # albedo: not a group, filtered with the first branch's kernels
+    whole = inference.denoise_result(groups, model, tile=0, device="cpu", layers=layers, rows=False)
+    res = inference.denoise_result(groups, model, tile=0, device="cpu", layers=layers)
+    assert res.stats.row_bands > 0 and whole.stats.row_bands == 0
+    for name in layers:
+        assert _rel(whole.layers[name], res.layers[name]) < 1e-5, name
+    total = sum(res.layers[n] for n in names)
+    assert _rel(res.color, total) < 1e-5
+    assert all(res.layers[n].mean() > 0 for n in names)

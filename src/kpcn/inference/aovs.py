@@ -34,7 +34,7 @@ from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, InputSpec
 from ..io import Frame, MissingLayerError
 
-__all__ = ["AovPlan", "plan_aovs", "denoise_aovs", "noisy_aov"]
+__all__ = ["AovPlan", "plan_aovs", "denoise_aovs", "noisy_aov", "aov_signals", "compose_aovs"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +80,54 @@ def _t(frame: Frame, layer: str, crop, device) -> torch.Tensor:
     return torch.from_numpy(a)[None].to(device)
 
 
+def aov_signals(plans: list[AovPlan], run, layer, albedo: torch.Tensor) -> dict[str, dict[str, torch.Tensor]]:
+    """Per branch in ``run``, the layers its kernels filter, in the space they are filtered in.
+
+    ``layer(name) -> (1, 3, h, w)`` reads a frame layer over the region; ``albedo`` is the model's
+    (clamped) albedo there. Keys name the layer and its space (``<layer>|demod``: ``/ (albedo + eps)``;
+    ``|pos``: clamped at 0; ``|raw``: as it is); ``specular|pos`` is the beauty's specular, whose
+    filtered value shares the denoised specular among the groups.
+    """
+    sig: dict[str, dict[str, torch.Tensor]] = {b: {} for b in run}
+    for plan in plans:
+        for b, name in plan.parts.items():
+            if b not in run:
+                continue
+            if not plan.group:
+                sig[b][f"{name}|raw"] = layer(name)
+            elif b == "diffuse":
+                sig[b][f"{name}|demod"] = layer(name).clamp_min(0.0) / (albedo + EPS)
+            else:
+                sig[b][f"{name}|pos"] = layer(name).clamp_min(0.0)
+    if "specular" in run and any(p.group and "specular" in p.parts for p in plans):
+        sig["specular"]["specular|pos"] = layer("specular").clamp_min(0.0)
+    return sig
+
+
+def compose_aovs(plans: list[AovPlan], run, filtered: dict[str, dict[str, torch.Tensor]], albedo: torch.Tensor,
+                 specular_out: torch.Tensor | None) -> dict[str, torch.Tensor]:
+    """The requested layers ``{name: (1, 3, h, w)}`` from the filtered :func:`aov_signals` (same keys);
+    ``specular_out``: the specular branch's denoised output (log space), where a group has a specular part."""
+    out = {}
+    for plan in plans:
+        value = torch.zeros_like(albedo)
+        for b, name in plan.parts.items():
+            if b not in run:  # a branch not run is zero here: its parts contribute 0
+                continue
+            if not plan.group:
+                value = value + filtered[b][f"{name}|raw"]
+            elif b == "diffuse":
+                value = value + (albedo + EPS) * filtered[b][f"{name}|demod"]
+            elif b == "specular":
+                total, part = filtered[b]["specular|pos"], filtered[b][f"{name}|pos"]
+                beauty = torch.expm1(specular_out.clamp(0.0, SPECULAR_LOG_MAX))
+                value = value + torch.where(total > 0, beauty * part / total.clamp_min(1e-30), torch.zeros_like(part))
+            else:  # a linear branch (color_albedo_normal)
+                value = value + filtered[b][f"{name}|pos"]
+        out[plan.name] = value
+    return out
+
+
 def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run, plans: list[AovPlan],
                  device) -> dict[str, torch.Tensor]:
     """The requested layers over one crop, ``{name: (1, 3, h, w)}``, with the kernels of the branches in ``run``.
@@ -87,31 +135,10 @@ def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run,
     ``inputs`` and ``res`` are the model's inputs and outputs on the crop; a
     branch not in ``run`` is zero on the crop (its parts contribute 0).
     """
-    kernels, shares = {}, {}
+    sig = aov_signals(plans, run, lambda name: _t(frame, name, crop, device), inputs["albedo"])
+    filtered = {}
     for b in run:
-        kernels[b] = net.branch_kernels(b, inputs[b], context)
-    apply = {b: getattr(net, b).apply_kernels for b in run}
-    albedo = inputs["albedo"]
-    if "specular" in run and any(p.group and "specular" in p.parts for p in plans):
-        total = apply["specular"](_t(frame, "specular", crop, device).clamp_min(0.0).contiguous(), kernels["specular"])
-        beauty = torch.expm1(res["specular"].clamp(0.0, SPECULAR_LOG_MAX))
-        shares["specular"] = (total, beauty)
-    out = {}
-    for plan in plans:
-        value = torch.zeros_like(albedo)
-        for b, layer in plan.parts.items():
-            if b not in run:
-                continue
-            x = _t(frame, layer, crop, device)
-            if not plan.group:
-                value = value + apply[b](x.contiguous(), kernels[b])
-            elif b == "diffuse":
-                value = value + (albedo + EPS) * apply[b]((x.clamp_min(0.0) / (albedo + EPS)).contiguous(), kernels[b])
-            elif b == "specular":
-                total, beauty = shares["specular"]
-                part = apply[b](x.clamp_min(0.0).contiguous(), kernels[b])
-                value = value + torch.where(total > 0, beauty * part / total.clamp_min(1e-30), torch.zeros_like(part))
-            else:  # a linear branch (color_albedo_normal)
-                value = value + apply[b](x.clamp_min(0.0).contiguous(), kernels[b])
-        out[plan.name] = value
-    return out
+        if sig[b]:
+            kernels, apply = net.branch_kernels(b, inputs[b], context), getattr(net, b).apply_kernels
+            filtered[b] = {k: apply(v.contiguous(), kernels) for k, v in sig[b].items()}
+    return compose_aovs(plans, run, filtered, inputs["albedo"], res.get("specular"))

@@ -178,7 +178,7 @@ def denoise_result(
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
     use_half = bool(half) and dev.type == "cuda"
-    use_rows = rows and not plans and not use_half and supports_rows(net)
+    use_rows = rows and not use_half and supports_rows(net)
     if tile == "auto":
         tile = auto_tile(h, w, halo, align, rows=use_rows)
     if half and not use_half:
@@ -239,7 +239,9 @@ def denoise_result(
                 stats.tiles_zero += 1
                 continue
             if use_rows and crop == (slice(0, h), slice(0, w)):  # the whole frame, a band of rows at a time
-                out[...], stats.row_bands = denoise_rows(frame, net, spec, frame_value, run, dev, _tensors)
+                out[...], denoised, stats.row_bands = denoise_rows(frame, net, spec, frame_value, run, dev, _tensors, plans)
+                for name, v in denoised.items():
+                    aov_out[name][...] = v
                 stats.tiles_run += 1
                 continue
             inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from ..io import Frame
 from ..models import unet_rows
 from ..models.unet_rows import clamped_rows
+from .aovs import aov_signals, compose_aovs
 
 __all__ = ["denoise_rows", "supports_rows"]
 
@@ -27,37 +28,58 @@ def supports_rows(net) -> bool:
     return callable(fn) and bool(getattr(net, "streams_rows", False))
 
 
-def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, tensors, band: int | None = None) -> tuple[np.ndarray, int]:
-    """Denoise ``frame`` (sanitised, the spec's layers) with ``net``'s row streams: the colour ``(H, W, 3)``
-    float32, and the number of bands (of ``band`` rows, default :data:`kpcn.models.unet_rows.BAND_ROWS`).
+def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, tensors, plans=(), band: int | None = None
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
+    """Denoise ``frame`` (sanitised, the spec's layers) with ``net``'s row streams.
 
     ``branches``: those to run (the others are zero); ``frame_value``: the whole frame's depth scale or
-    noise precision; ``tensors(frame, layers, crop, device)``: the layer tensors of a crop (the pipeline's).
+    noise precision; ``tensors(frame, layers, crop, device)``: the layer tensors of a crop (the pipeline's);
+    ``plans``: other layers to denoise with the beauty's kernels (:mod:`.aovs`).
+
+    Returns:
+        the colour ``(H, W, 3)`` float32, ``{plan name: (H, W, 3)}``, and the number of bands (of ``band``
+        rows, default :data:`kpcn.models.unet_rows.BAND_ROWS`).
     """
     band = int(band or unet_rows.BAND_ROWS)
     band += band % 2
     h, w = frame[spec.layers[0]].shape[:2]
     out = np.empty((h, w, 3), dtype=np.float32)
+    layers_out = {p.name: np.empty((h, w, 3), dtype=np.float32) for p in plans}
     streams = {b: net.row_stream(b, h, w, device) for b in branches}
     hp, wp = next(iter(streams.values())).padded_size
     layers = spec.layers_for(branches)
     albedo = torch.empty(1, 3, h, w, device=device)
+
+    def rows_of(t, r0, r1, c0):  # rows [r0, r1) of the padded frame from a crop starting at row c0
+        x = clamped_rows(t, r0 - c0, r1 - c0)
+        return F.pad(x, (0, wp - w, 0, 0), mode="replicate") if wp > w else x
+
     for r0 in range(0, hp, band):
         r1 = min(r0 + band, hp)
         c0, c1 = min(r0, h - 1), min(r1 + spec.halo, h)  # padded rows >= h repeat row h - 1
-        inputs = spec.build(tensors(frame, layers, (slice(c0, c1), slice(0, w)), device), frame_value, branches)
+        crop = (slice(c0, c1), slice(0, w))
+        inputs = spec.build(tensors(frame, layers, crop, device), frame_value, branches)
         if r0 < h:
             albedo[..., r0:min(r1, h), :] = inputs["albedo"][..., : min(r1, h) - r0, :]
+        signals = {}
+        if plans:  # the layers each branch filters, over the same padded rows
+            signals = aov_signals(plans, branches, lambda n: rows_of(tensors(frame, [n], crop, device)[n], r0, r1, c0),
+                                  rows_of(inputs["albedo"], r0, r1, c0))
         for b, s in streams.items():
-            x = clamped_rows(inputs[b], r0 - c0, r1 - c0)
-            s.feed(r0, F.pad(x, (0, wp - w, 0, 0), mode="replicate") if wp > w else x)
-        del inputs
+            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b))
+        del inputs, signals
     for s in streams.values():
         s.run()
+    beauty = unet_rows.RowStream.BEAUTY
     for r0 in range(0, h, band):
         r1 = min(r0 + band, hp)
         n = min(r1, h) - r0
-        outs = {b: s.rows(r0, r1)[..., :n, :w] for b, s in streams.items()}
-        color = spec.reconstruct(outs, {"albedo": albedo[..., r0:r0 + n, :]})
+        res = {b: {k: v[..., :n, :w] for k, v in s.rows(r0, r1).items()} for b, s in streams.items()}
+        outs = {b: r[beauty] for b, r in res.items()}
+        a = albedo[..., r0:r0 + n, :]
+        color = spec.reconstruct(outs, {"albedo": a})
         out[r0:r0 + n] = color[0].float().permute(1, 2, 0).cpu().numpy()
-    return out, -(-hp // band)
+        if plans:
+            for name, v in compose_aovs(plans, branches, res, a, outs.get("specular")).items():
+                layers_out[name][r0:r0 + n] = v[0].float().permute(1, 2, 0).cpu().numpy()
+    return out, layers_out, -(-hp // band)

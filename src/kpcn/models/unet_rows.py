@@ -43,13 +43,20 @@ def clamped_rows(t: torch.Tensor, a: int, b: int) -> torch.Tensor:
     return t.index_select(-2, idx)
 
 
-def _apply_softmax_kernels(padded: torch.Tensor, logits: torch.Tensor, s: float, k: int) -> torch.Tensor:
-    """The kernels ``softmax(s tanh(logits / s))`` applied to ``padded`` (grown by ``k // 2``), normalised
-    after the application (3 channels to divide, not ``k*k``); equal to normalising first to rounding."""
-    if s > 80:  # exp of logits in [-s, s] could overflow: the ordinary softmax
-        return kernel_apply_padded(padded, _bounded_softmax(logits, s), k)
+def _softmax_weights(logits: torch.Tensor, s: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Unnormalised kernel weights ``exp(s tanh(logits / s))`` and their sum, to divide by after applying
+    them (3 channels to divide, not ``k*k``; equal to normalising first to rounding); for ``s > 80``, where
+    that exp could overflow, the ordinary softmax and None."""
+    if s > 80:
+        return _bounded_softmax(logits, s), None
     w = _bounded_logits(logits, s).exp_()
-    return kernel_apply_padded(padded, w, k).div_(w.sum(dim=1, keepdim=True))
+    return w, w.sum(dim=1, keepdim=True)
+
+
+def _apply(padded: torch.Tensor, weights, k: int) -> torch.Tensor:
+    w, norm = weights
+    f = kernel_apply_padded(padded, w, k)
+    return f.div_(norm) if norm is not None else f
 
 
 class RowStream:
@@ -62,8 +69,13 @@ class RowStream:
         device, dtype: of the buffers.
 
     ``feed`` every band of the padded frame in order (``rows`` ``[r0, r1)``, ``r0`` and ``r1`` even),
-    then ``run`` once, then ask for output bands with ``rows``. Inference only (no autograd).
+    then ``run`` once, then ask for output bands with ``rows``. Besides the beauty (the branch colour,
+    key :attr:`BEAUTY`), ``feed`` can take other three-channel layers in the branch's space (light
+    groups, AOVs): ``rows`` returns each filtered with the same kernels and the same multi-scale
+    blend. Inference only (no autograd).
     """
+
+    BEAUTY = "beauty"
 
     def __init__(self, branch: UNetBranch, height: int, width: int, device=None, dtype=torch.float32) -> None:
         cfg = branch.cfg
@@ -75,26 +87,36 @@ class RowStream:
         self.padded_size = (-(-height // a) * a, -(-width // a) * a)
         hp, wp = self.padded_size
         c = branch.enc[0][0].in_channels
-        kw = dict(device=device, dtype=dtype)
+        self._kw = dict(device=device, dtype=dtype)
         # channels_last, the layout the network runs in: each band is transposed while it is in cache
-        self._pooled = torch.empty(1, c, hp // 2, wp // 2, **kw).contiguous(memory_format=torch.channels_last)
-        self._guide = torch.empty(1, cfg.guide_channels, hp, wp, **kw)
-        self._colour = torch.empty(1, 3, hp, wp, **kw)
-        self._colour_half = torch.empty(1, 3, hp // 2, wp // 2, **kw)
+        self._pooled = torch.empty(1, c, hp // 2, wp // 2, **self._kw).contiguous(memory_format=torch.channels_last)
+        self._guide = torch.empty(1, cfg.guide_channels, hp, wp, **self._kw)
+        self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
+        self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
         self._fed = 0
-        self._low = self._coarse = None
+        self._low = None
+        self._coarse: dict[str, torch.Tensor] = {}
 
-    def feed(self, r0: int, x: torch.Tensor) -> None:
-        """Features ``(1, C, r1 - r0, padded width)`` of rows ``[r0, r1)`` of the padded frame (bands in order)."""
+    def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None) -> None:
+        """Features ``(1, C, r1 - r0, padded width)`` of rows ``[r0, r1)`` of the padded frame (bands in order),
+        and ``layers``: other ``(1, 3, r1 - r0, padded width)`` signals to filter (the same keys every band)."""
         n = x.shape[-2]
         if r0 != self._fed or n % 2 or x.shape[-1] != self.padded_size[1]:
             raise ValueError(f"RowStream.feed: expected an even number of rows from row {self._fed}, "
                              f"{self.padded_size[1]} wide; got rows {r0}..{r0 + n}, {x.shape[-1]} wide")
+        signals = {self.BEAUTY: x[:, :3], **(layers or {})}
+        if r0 == 0:
+            hp, wp = self.padded_size
+            self._full = {k: torch.empty(1, 3, hp, wp, **self._kw) for k in signals}
+            self._half = {k: torch.empty(1, 3, hp // 2, wp // 2, **self._kw) for k in signals}
+        elif signals.keys() != self._full.keys():
+            raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
         kind, g = self.cfg.input_transform, self.branch.guide
         self._guide[..., r0:r0 + n, :] = conv1x1(transform_input(x, kind), g.weight, g.bias).relu_()
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
-        self._colour[..., r0:r0 + n, :] = x[:, :3]
-        self._colour_half[..., r0 // 2:(r0 + n) // 2, :] = pool2(x[:, :3])
+        for k, v in signals.items():
+            self._full[k][..., r0:r0 + n, :] = v
+            self._half[k][..., r0 // 2:(r0 + n) // 2, :] = pool2(v)
         self._fed = r0 + n
 
     def run(self, summary: torch.Tensor | None = None) -> None:
@@ -106,27 +128,31 @@ class RowStream:
         c = h.shape[1]
         self._low = conv1x1(h, net.head.weight[:, :c], net.head.bias)  # the guided head's half-resolution part
         self._wg = net.head.weight[:, c:].reshape(net.head.out_channels, -1)
-        if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result
-            kk, s = cfg.kernel_size**2, cfg.logit_scale
-            filtered, alphas, colour = [], [], self._colour_half
+        if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
+            kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
+            weights, alphas = [], []
             for level in range(1, cfg.kernel_scales):
-                if level > 1:
-                    colour = pool2(colour)
                 z = net.heads[level - 1](decoded[level - 1])
                 alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
-                r = cfg.kernel_size // 2
-                padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
-                filtered.append(_apply_softmax_kernels(padded, z[:, :kk], s, cfg.kernel_size))
-            self._coarse = combine_levels(filtered, alphas)
-        self._colour_half = None
+                weights.append(_softmax_weights(z[:, :kk], cfg.logit_scale))
+            for key, colour in self._half.items():
+                filtered = []
+                for level, w in enumerate(weights):
+                    if level:
+                        colour = pool2(colour)
+                    padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
+                    filtered.append(_apply(padded, w, cfg.kernel_size))
+                self._coarse[key] = combine_levels(filtered, alphas)
+        self._half = {}
 
     def _release_pooled(self) -> torch.Tensor:
         """The pooled features, no longer held here: the encoder frees them after its first conv."""
         pooled, self._pooled = self._pooled, None
         return pooled
 
-    def rows(self, r0: int, r1: int) -> torch.Tensor:
-        """Output rows ``[r0, r1)`` (even) of the padded frame, ``(1, 3, r1 - r0, padded width)``, branch space."""
+    def rows(self, r0: int, r1: int) -> dict[str, torch.Tensor]:
+        """Output rows ``[r0, r1)`` (even) of the padded frame, ``{key: (1, 3, r1 - r0, padded width)}`` in the
+        branch's space: the beauty (:attr:`BEAUTY`) and every layer fed."""
         if self._low is None:
             raise ValueError("RowStream.rows: call run() first")
         cfg = self.cfg
@@ -138,13 +164,18 @@ class RowStream:
                           align_corners=False)[..., 2:-2, :]
         gb = self._guide[0, :, e0:e1, :]
         z = z.add_(torch.mm(self._wg, gb.reshape(gb.shape[0], -1)).view(1, -1, e1 - e0, gb.shape[-1]))
-        colour = F.pad(clamped_rows(self._colour, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
-            self._colour[..., e0:e1, :]
-        f = _apply_softmax_kernels(colour, z[:, :kk], cfg.logit_scale, cfg.kernel_size)
-        if cfg.kernel_scales == 1:
-            return f
-        alpha = torch.sigmoid(z[:, kk:])
-        up = F.interpolate(clamped_rows(self._coarse, e0 // 2, e1 // 2) - pool2(f), scale_factor=2, mode="bilinear",
-                           align_corners=False)
+        weights = _softmax_weights(z[:, :kk], cfg.logit_scale)
+        alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
         i0, n = r0 - e0, r1 - r0
-        return f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
+        out = {}
+        for key, full in self._full.items():
+            colour = F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
+                full[..., e0:e1, :]
+            f = _apply(colour, weights, cfg.kernel_size)
+            if alpha is None:
+                out[key] = f
+                continue
+            up = F.interpolate(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - pool2(f), scale_factor=2,
+                               mode="bilinear", align_corners=False)
+            out[key] = f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
+        return out
