@@ -166,3 +166,22 @@ def test_row_bands_denoise_light_groups_and_other_layers_as_the_whole_frame(grou
     total = sum(res.layers[n] for n in names)
     assert _rel(res.color, total) < 1e-5
     assert all(res.layers[n].mean() > 0 for n in names)
+
+
+def test_light_groups_add_up_where_the_blend_dips_below_zero(mi):
+    """The multi-scale blend is not convex: beside fireflies the diffuse output dips below 0 (the beauty clamps
+    it) and the filtered specular can vanish while the log-space branch does not; the groups follow the beauty."""
+    from kpcn.render.groups import render_light_groups
+
+    frame = render_light_groups("random:1", spp=2, seed=1, resolution=(96, 64))
+    names = frame.meta["lightGroups"].split(",")
+    model = _model()
+    spec = model.input_spec
+    with torch.inference_mode():  # the control: this frame's diffuse output really dips below 0
+        x = spec.build(_tensors(frame, spec.layers, (slice(None), slice(None)), torch.device("cpu")),
+                       spec.frame_value(frame), spec.branches)
+        assert model.run_branch("diffuse", x["diffuse"]).min() < 0
+    for rows in (True, False):
+        res = inference.denoise_result(frame, model, device="cpu", layers=names, rows=rows)
+        total = sum(res.layers[n] for n in names)
+        assert _rel(res.color, total) < 1e-5, rows

@@ -16,7 +16,10 @@ layers=[...])`` does it, per branch:
 
   So when the groups add up to the beauty, the denoised groups add up to the
   denoised beauty (to float rounding), which per-layer denoising (OIDN's way)
-  does not give;
+  does not give. Where the beauty is not linear in the groups — it clamps a
+  linear branch at 0, and beside a firefly the filtered specular can vanish
+  while the log-space branch does not — :func:`compose_aovs` follows it (a
+  clamped part is 0; the specular share falls back to the noisy pixel's);
 * any other layer ``x`` (three channels) is filtered directly with the kernels
   of one branch (``aov_branch``, the first one by default): a constant layer
   stays constant, since the kernels are normalised and replicate the border.
@@ -34,7 +37,11 @@ from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, InputSpec
 from ..io import Frame, MissingLayerError
 
-__all__ = ["AovPlan", "plan_aovs", "denoise_aovs", "noisy_aov", "aov_signals", "compose_aovs"]
+#: a group's specular share is taken from the filtered layers where the filtered beauty specular is at least
+#: this fraction of the denoised one (else from the noisy pixel; see :func:`compose_aovs`)
+SHARE_FLOOR = 1e-3
+
+__all__ = ["SHARE_FLOOR", "AovPlan", "plan_aovs", "denoise_aovs", "noisy_aov", "aov_signals", "compose_aovs"]
 
 
 @dataclass(frozen=True)
@@ -104,10 +111,21 @@ def aov_signals(plans: list[AovPlan], run, layer, albedo: torch.Tensor) -> dict[
     return sig
 
 
-def compose_aovs(plans: list[AovPlan], run, filtered: dict[str, dict[str, torch.Tensor]], albedo: torch.Tensor,
-                 specular_out: torch.Tensor | None) -> dict[str, torch.Tensor]:
-    """The requested layers ``{name: (1, 3, h, w)}`` from the filtered :func:`aov_signals` (same keys);
-    ``specular_out``: the specular branch's denoised output (log space), where a group has a specular part."""
+def compose_aovs(plans: list[AovPlan], run, filtered: dict[str, dict[str, torch.Tensor]],
+                 noisy: dict[str, dict[str, torch.Tensor]], albedo: torch.Tensor,
+                 outputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The requested layers ``{name: (1, 3, h, w)}`` from the :func:`aov_signals` ``noisy`` and their filtered
+    values ``filtered`` (same keys); ``outputs``: each run branch's denoised output (its own space).
+
+    The beauty clamps a linear branch's output at 0 (the multi-scale blend is not convex, so it can dip
+    below): a group's part of that branch is kept where the branch is positive and is 0 where the beauty
+    clamped it. A group's specular part is its share of the denoised specular: ``K ⊛ g / K ⊛ specular``
+    where the filtered beauty specular is at least :data:`SHARE_FLOOR` of the denoised one; elsewhere
+    (beside a firefly the filtered specular can be 0 or negative while the log-space branch is not) the
+    noisy pixel's share ``g / specular``, or, where that is 0 too, an equal share of the groups asked
+    for. So light groups add up to the beauty everywhere.
+    """
+    n_spec = sum(1 for p in plans if p.group and "specular" in p.parts)
     out = {}
     for plan in plans:
         value = torch.zeros_like(albedo)
@@ -117,13 +135,18 @@ def compose_aovs(plans: list[AovPlan], run, filtered: dict[str, dict[str, torch.
             if not plan.group:
                 value = value + filtered[b][f"{name}|raw"]
             elif b == "diffuse":
-                value = value + (albedo + EPS) * filtered[b][f"{name}|demod"]
+                part = (albedo + EPS) * filtered[b][f"{name}|demod"]
+                value = value + torch.where(outputs[b] > 0, part, torch.zeros_like(part))
             elif b == "specular":
                 total, part = filtered[b]["specular|pos"], filtered[b][f"{name}|pos"]
-                beauty = torch.expm1(specular_out.clamp(0.0, SPECULAR_LOG_MAX))
-                value = value + torch.where(total > 0, beauty * part / total.clamp_min(1e-30), torch.zeros_like(part))
+                total_n, part_n = noisy[b]["specular|pos"], noisy[b][f"{name}|pos"]
+                beauty = torch.expm1(outputs[b].clamp(0.0, SPECULAR_LOG_MAX))
+                fallback = torch.where(total_n > 0, part_n / total_n.clamp_min(1e-30), torch.full_like(part, 1.0 / n_spec))
+                share = torch.where(total > SHARE_FLOOR * beauty, part / total.clamp_min(1e-30), fallback)
+                value = value + beauty * share
             else:  # a linear branch (color_albedo_normal)
-                value = value + filtered[b][f"{name}|pos"]
+                part = filtered[b][f"{name}|pos"]
+                value = value + torch.where(outputs[b] > 0, part, torch.zeros_like(part))
         out[plan.name] = value
     return out
 
@@ -141,4 +164,4 @@ def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run,
         if sig[b]:
             kernels, apply = net.branch_kernels(b, inputs[b], context), getattr(net, b).apply_kernels
             filtered[b] = {k: apply(v.contiguous(), kernels) for k, v in sig[b].items()}
-    return compose_aovs(plans, run, filtered, inputs["albedo"], res.get("specular"))
+    return compose_aovs(plans, run, filtered, sig, inputs["albedo"], res)

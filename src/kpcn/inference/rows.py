@@ -75,11 +75,12 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, tensors
         r1 = min(r0 + band, hp)
         n = min(r1, h) - r0
         res = {b: {k: v[..., :n, :w] for k, v in s.rows(r0, r1).items()} for b, s in streams.items()}
+        noisy = {b: {k: v[..., r0:r0 + n, :w] for k, v in s.signals.items()} for b, s in streams.items()} if plans else {}
         outs = {b: r[beauty] for b, r in res.items()}
         a = albedo[..., r0:r0 + n, :]
         color = spec.reconstruct(outs, {"albedo": a})
         out[r0:r0 + n] = color[0].float().permute(1, 2, 0).cpu().numpy()
         if plans:
-            for name, v in compose_aovs(plans, branches, res, a, outs.get("specular")).items():
+            for name, v in compose_aovs(plans, branches, res, noisy, a, outs).items():
                 layers_out[name][r0:r0 + n] = v[0].float().permute(1, 2, 0).cpu().numpy()
     return out, layers_out, -(-hp // band)

@@ -145,6 +145,11 @@ class RowStream:
                 self._coarse[key] = combine_levels(filtered, alphas)
         self._half = {}
 
+    @property
+    def signals(self) -> dict[str, torch.Tensor]:
+        """What was fed, ``{key: (1, 3, padded height, padded width)}``: the beauty and every layer."""
+        return self._full
+
     def _release_pooled(self) -> torch.Tensor:
         """The pooled features, no longer held here: the encoder frees them after its first conv."""
         pooled, self._pooled = self._pooled, None
