@@ -24,6 +24,14 @@ from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
 FRAME_RES = (150, 117)  # width, height: neither a multiple of the alignment (16)
 
 
+@pytest.fixture(autouse=True)
+def bands_for_small_frames(monkeypatch):
+    """The test frames are small: take them in row bands all the same (the default is 600x600 and larger)."""
+    from kpcn.inference import rows
+
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", 0)
+
+
 @pytest.fixture(scope="module")
 def frame(render):
     return render("test:glossy", spp=4, seed=1, resolution=FRAME_RES)
@@ -185,3 +193,14 @@ def test_light_groups_add_up_where_the_blend_dips_below_zero(mi):
         res = inference.denoise_result(frame, model, device="cpu", layers=names, rows=rows)
         total = sum(res.layers[n] for n in names)
         assert _rel(res.color, total) < 1e-5, rows
+
+
+def test_small_frames_go_whole(frame, monkeypatch):
+    """Below ``ROWS_MIN_PIXELS`` the bands' overhead outweighs what they save: the frame goes whole."""
+    from kpcn.inference import rows
+
+    w, h = FRAME_RES
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", w * h + 1)
+    assert inference.denoise_result(frame, _model(), device="cpu").stats.row_bands == 0
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", w * h)
+    assert inference.denoise_result(frame, _model(), device="cpu").stats.row_bands > 0

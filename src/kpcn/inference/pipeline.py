@@ -178,7 +178,7 @@ def denoise_result(
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
     use_half = bool(half) and dev.type == "cuda"
-    use_rows = rows and dev.type == "cpu" and supports_rows(net)  # bands are for CPU caches; a GPU takes it whole
+    use_rows = rows and dev.type == "cpu" and supports_rows(net, h, w)  # bands are for CPU caches; a GPU takes it whole
     if tile == "auto":
         tile = auto_tile(h, w, halo, align, rows=use_rows)
     if half and not use_half:
@@ -336,8 +336,8 @@ def denoise(
             the beauty's kernels (kernel predictors only); written to ``out_path`` too.
         aov_branch: the branch whose kernels filter layers that are not light groups
             (default: the spec's first branch).
-        rows: on the CPU, a frame denoised whole by a model with row streams (the ``stem: half`` U-Net,
-            the default) is run a band of rows at a time (:mod:`kpcn.inference.rows`: the same result to
+        rows: on the CPU, a frame of at least 600x600 pixels denoised whole by a model with row streams
+            (the ``stem: half`` U-Net, the default) is run a band of rows at a time (:mod:`kpcn.inference.rows`: the same result to
             float rounding, in less time and memory); ``False``: the whole frame at once.
 
     Raises:
