@@ -39,6 +39,8 @@ import torch
 import torch.nn.functional as F
 
 from kpcn import inference as dn
+from kpcn.inference import rows as rows_module
+from kpcn.inference.rows import supports_rows
 from kpcn.constants import EPS
 from kpcn.features import frame_to_tensors
 from kpcn.inputs import list_input_specs
@@ -294,11 +296,18 @@ def test_cases_edit_the_colour_with_the_split(render, case):
 
 
 @pytest.mark.parametrize("case", list(CASES))
-def test_extreme_inputs(render, model, case):
+def test_extreme_inputs(render, model, case, monkeypatch):
     frame = CASES[case](render)
     for tile in (None, 8):
         out = dn.denoise(frame, model, tile=tile, device="cpu")
         _check_output(out, frame, model, f"{case} (tile {tile})")
+    if supports_rows(model):  # the same frame a band of rows at a time (large frames take this path)
+        monkeypatch.setattr(rows_module, "ROWS_MIN_PIXELS", 0)
+        res = dn.denoise_result(frame, model, device="cpu")
+        assert res.stats.row_bands > 0 or res.stats.tiles_run == 0  # (a frame passed through or zero runs nothing)
+        _check_output(res.color, frame, model, f"{case} (row bands)")
+        whole = dn.denoise(frame, model, device="cpu", rows=False)
+        assert np.abs(res.color - whole).max() <= 1e-5 * max(np.abs(whole).max(), 1e-30), f"{case}: row bands differ"
     if case == "all_black":  # the model run on it, not skipped
         out = dn.denoise(frame, model, device="cpu", skip=False)
         _check_output(out, frame, model, f"{case} (no skip)")
