@@ -56,7 +56,8 @@ from torch import nn
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
-from .layers import INPUT_TRANSFORMS, Conv1x1, conv1x1, kernel_prior_bias, pool2, transform_input
+from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
+from .layers import INPUT_TRANSFORMS, Conv1x1, kernel_prior_bias, pool2, transform_input
 from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
@@ -277,89 +278,6 @@ class UNetBranch(nn.Module):
             kernels.append(_bounded_softmax(z[:, :kk], s))
             del z
         return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in))
-
-
-def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
-    """``softmax(s * tanh(z / s))`` over channels, contiguous; in place where no gradient is needed."""
-    if torch.is_grad_enabled() and z.requires_grad:
-        return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
-    # inference: in place (frames are large); the bounded logits lie in [-s, s], so exp cannot overflow
-    # for s <= 80 and no maximum need be subtracted (equal to torch.softmax to float rounding)
-    t = _bounded_logits(z, s)
-    if s > 80:
-        return torch.softmax(t, dim=1).contiguous()
-    t.exp_()
-    return t.div_(t.sum(dim=1, keepdim=True)).contiguous()
-
-
-def _bounded_logits(z: torch.Tensor, s: float) -> torch.Tensor:
-    """``s * tanh(z / s)`` (a new tensor; computed in place on it)."""
-    return (z / s).tanh_().mul_(s)
-
-
-@dataclass(frozen=True)
-class MultiScaleKernels:
-    """Per-level kernels ``(B, k*k, H/2**l, W/2**l)`` and blending weights ``(B, 1, ...)`` (None at the coarsest),
-    at the size padded to the alignment; ``size`` is the unpadded ``(H, W)``."""
-
-    kernels: tuple[torch.Tensor, ...]
-    alphas: tuple[torch.Tensor | None, ...]
-    size: tuple[int, int]
-
-
-class MultiScaleApply(nn.Module):
-    """Apply :class:`MultiScaleKernels` to a colour ``(B, 3, H, W)``: filter each level, combine coarse to fine."""
-
-    def __init__(self, kernel_size: int, alignment: int) -> None:
-        super().__init__()
-        self.kernel_size, self.alignment = kernel_size, alignment
-        self.apply_one = KernelApply(kernel_size, "replicate")
-
-    def forward(self, colour: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
-        h, w = ks.size
-        a = self.alignment
-        colour = F.pad(colour, (0, (-w) % a, 0, (-h) % a), mode="replicate") if (h % a or w % a) else colour
-        filtered = []
-        level_colour = colour
-        for level, k in enumerate(ks.kernels):
-            if level:
-                level_colour = pool2(level_colour)
-            filtered.append(self.apply_one(level_colour.contiguous(), k))
-        return combine_levels(filtered, ks.alphas)[..., :h, :w]
-
-
-def combine_levels(filtered, alphas) -> torch.Tensor:
-    """Coarse to fine, ``o_l = f_l + α_l · U(o_{l+1} - D(f_l))`` over filtered levels ``(B, 3, H/2**l, W/2**l)``."""
-    out = filtered[-1]
-    for level in range(len(filtered) - 2, -1, -1):
-        f, alpha = filtered[level], alphas[level]
-        up = F.interpolate(out - pool2(f), scale_factor=2, mode="bilinear", align_corners=False)
-        out = f + alpha * up
-    return out
-
-
-class GuidedHead(nn.Conv2d):
-    """The ``stem: half`` head: a 1×1 conv of ``[bilinear_up2(coarse), guide]``, computed as
-    ``bilinear_up2(W_c · coarse + b) + W_g · guide``.
-
-    The same function (a 1×1 conv is per-pixel affine, and bilinear weights sum to one, so the
-    two commute) and the same parameters as an ``nn.Conv2d`` on the concatenation, but the
-    coarse part runs at half resolution and no full-resolution concatenation is built.
-    ``forward`` takes the pair ``(coarse (B, Cc, h, w), guide (B, Cg, 2h, 2w))``.
-    """
-
-    def forward(self, pair):  # type: ignore[override]
-        coarse, guide = pair
-        c = coarse.shape[1]
-        low = conv1x1(coarse, self.weight[:, :c], self.bias)
-        up = F.interpolate(low, scale_factor=2, mode="bilinear", align_corners=False)
-        return up.add_(conv1x1(guide, self.weight[:, c:]))  # in place: one full-size tensor fewer
-
-    def macs(self, pair, out) -> int:
-        """Multiply-adds of one call per image (for :func:`kpcn.models.cost.macs_per_pixel`)."""
-        coarse, guide = pair
-        n_out = self.out_channels
-        return (coarse[0, 0].numel() * coarse.shape[1] + guide[0, 0].numel() * guide.shape[1]) * n_out
 
 
 class UNetKPCN(DenoiserModel):

@@ -26,7 +26,8 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .layers import conv1x1, pool2, transform_input
-from .unet import UNetBranch, _bounded_logits, _bounded_softmax, combine_levels
+from .kernel_heads import _bounded_logits, _bounded_softmax, combine_levels
+from .unet import UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
 
