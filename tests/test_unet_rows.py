@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from kpcn import inference
 from kpcn.inference.pipeline import _tensors
-from kpcn.inference.rows import denoise_rows
+from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
 from kpcn.models.layers import conv1x1, pool2
@@ -94,6 +94,10 @@ def test_row_stream_refuses_misuse():
     with pytest.raises(ValueError, match="stem: half"):
         _model(stem="full").row_stream("diffuse", 40, 40)
     assert not _model(stem="full").streams_rows
+    kpcn = create_model("kpcn", layers=2, width=4)  # no row streams: the contract's default
+    assert not kpcn.streams_rows and not supports_rows(kpcn) and supports_rows(_model())
+    with pytest.raises(NotImplementedError, match="no row streams"):
+        kpcn.row_stream("diffuse", 40, 40)
 
 
 def test_pool2_is_the_2x2_average():

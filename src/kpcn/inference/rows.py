@@ -1,7 +1,8 @@
 """A whole frame through a model's row streams (:class:`kpcn.models.unet_rows.RowStream`).
 
 For models that offer them (:meth:`~kpcn.models.DenoiserModel.row_stream`: the ``stem: half`` U-Net),
-:func:`kpcn.inference.denoise_result` runs a frame it would denoise whole this way instead: the
+:func:`kpcn.inference.denoise_result` runs a frame it would denoise whole on the CPU, of at least
+:data:`ROWS_MIN_PIXELS`, this way instead (light groups and other ``layers=`` too): the
 features are built a band of rows at a time (with the whole frame's depth scale or noise precision,
 and the one row below that the forward differences read), fed to each branch's stream, the networks
 run once at half resolution, and the output is assembled band by band (each band's branches
@@ -30,8 +31,7 @@ ROWS_MIN_PIXELS = 600 * 600
 def supports_rows(net, height: int | None = None, width: int | None = None) -> bool:
     """Whether ``net`` has row streams for every branch (and, given a size, whether the frame is large enough
     for bands to pay: :data:`ROWS_MIN_PIXELS`)."""
-    fn = getattr(net, "row_stream", None)
-    if not (callable(fn) and bool(getattr(net, "streams_rows", False))):
+    if not getattr(net, "streams_rows", False):
         return False
     return height is None or width is None or height * width >= ROWS_MIN_PIXELS
 

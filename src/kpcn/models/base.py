@@ -60,6 +60,8 @@ class DenoiserModel(nn.Module):
     kernel_padding: str | None = None
     #: each branch output is a convex combination of its noisy colour over the ``kernel_size``² neighbourhood
     convex_kernels: bool = False
+    #: a whole frame can be run a band of rows at a time (:meth:`row_stream`, :mod:`kpcn.inference.rows`)
+    streams_rows: bool = False
 
     def __init__(self, config: Any) -> None:
         super().__init__()
@@ -113,6 +115,11 @@ class DenoiserModel(nn.Module):
             raise NotImplementedError(f"{self.name or type(self).__name__} predicts no kernels: it cannot denoise "
                                       "other layers with the beauty's kernels")
         return branch.kernels(x)
+
+    def row_stream(self, name: str, height: int, width: int, device=None):
+        """A stream that runs branch ``name`` over a ``height × width`` frame a band of rows at a time
+        (models with :attr:`streams_rows`; e.g. :class:`kpcn.models.unet_rows.RowStream`)."""
+        raise NotImplementedError(f"{self.name or type(self).__name__} has no row streams")
 
     @property
     def kernel_size(self) -> int:

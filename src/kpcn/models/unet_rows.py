@@ -6,7 +6,8 @@ head plus the guide into kernels, applies them and blends in the coarser levels.
 element-wise passes over up to 27 channels: on a 1920×1080 frame, hundreds of MB per pass, so the
 whole-frame path is bounded by memory traffic, not arithmetic, and holds every pass's result at once.
 :class:`RowStream` does those steps on bands of rows small enough to stay in the CPU's cache, and keeps
-only what the later steps need (the guide, the colour, the pooled features):
+only what the later steps need (the guide, the pooled features, the colour and any other layers to
+filter with the same kernels):
 
 1. :meth:`RowStream.feed`: the features of a band of rows of the padded frame -> pooled and
    transformed features (half resolution), the guide and the colour;
