@@ -109,7 +109,7 @@ def test_pool2_is_the_2x2_average():
     assert torch.autograd.gradcheck(pool2, (x[:1, :2].clone().requires_grad_(),))
 
 
-@pytest.mark.parametrize("layout", ["nchw", "channels_last", "strided"])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last", "band", "strided"])
 @pytest.mark.parametrize("batch", [1, 3])
 def test_conv1x1_is_the_1x1_convolution(layout, batch):
     g = torch.Generator().manual_seed(1)
@@ -118,6 +118,8 @@ def test_conv1x1_is_the_1x1_convolution(layout, batch):
     b = torch.randn(4, generator=g, dtype=torch.float64)
     if layout == "channels_last":
         x = x.contiguous(memory_format=torch.channels_last)
+    elif layout == "band":  # rows of a taller NCHW tensor (what the row streams pass)
+        x = torch.randn(batch, 6, 11, 7, generator=g, dtype=torch.float64)[..., 3:8, :]
     elif layout == "strided":
         x = torch.randn(batch, 6, 5, 14, generator=g, dtype=torch.float64)[..., ::2]
     for bias in (b, None):

@@ -25,18 +25,19 @@ def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
     """``softmax(s * tanh(z / s))`` over channels, contiguous; in place where no gradient is needed."""
     if torch.is_grad_enabled() and z.requires_grad:
         return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
-    # inference: in place (frames are large); the bounded logits lie in [-s, s], so exp cannot overflow
-    # for s <= 80 and no maximum need be subtracted (equal to torch.softmax to float rounding)
-    t = _bounded_logits(z, s)
+    w, norm = _softmax_weights(z, s)  # inference: in place (frames are large)
+    return w.div_(norm).contiguous() if norm is not None else w
+
+
+def _softmax_weights(z: torch.Tensor, s: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Inference: unnormalised kernel weights ``exp(s tanh(z / s))`` and their sum over channels (the bounded
+    logits lie in ``[-s, s]``, so for ``s <= 80`` exp cannot overflow and no maximum need be subtracted: equal
+    to ``torch.softmax`` to float rounding); a caller may divide after applying them (3 channels, not ``k*k``).
+    For ``s > 80``: the normalised softmax and None."""
+    t = (z / s).tanh_().mul_(s)
     if s > 80:
-        return torch.softmax(t, dim=1).contiguous()
-    t.exp_()
-    return t.div_(t.sum(dim=1, keepdim=True)).contiguous()
-
-
-def _bounded_logits(z: torch.Tensor, s: float) -> torch.Tensor:
-    """``s * tanh(z / s)`` (a new tensor; computed in place on it)."""
-    return (z / s).tanh_().mul_(s)
+        return torch.softmax(t, dim=1).contiguous(), None
+    return t.exp_(), t.sum(dim=1, keepdim=True)
 
 
 @dataclass(frozen=True)
@@ -92,10 +93,16 @@ class GuidedHead(nn.Conv2d):
 
     def forward(self, pair):  # type: ignore[override]
         coarse, guide = pair
-        c = coarse.shape[1]
-        low = conv1x1(coarse, self.weight[:, :c], self.bias)
-        up = F.interpolate(low, scale_factor=2, mode="bilinear", align_corners=False)
-        return up.add_(conv1x1(guide, self.weight[:, c:]))  # in place: one full-size tensor fewer
+        up = F.interpolate(self.coarse_part(coarse), scale_factor=2, mode="bilinear", align_corners=False)
+        return up.add_(self.guide_part(guide))  # in place: one full-size tensor fewer
+
+    def coarse_part(self, coarse: torch.Tensor) -> torch.Tensor:
+        """``W_c · coarse + b`` at the coarse resolution (before the upsampling)."""
+        return conv1x1(coarse, self.weight[:, : coarse.shape[1]], self.bias)
+
+    def guide_part(self, guide: torch.Tensor) -> torch.Tensor:
+        """``W_g · guide`` (the guide's channels are the last inputs)."""
+        return conv1x1(guide, self.weight[:, self.in_channels - guide.shape[1]:])
 
     def macs(self, pair, out) -> int:
         """Multiply-adds of one call per image (for :func:`kpcn.models.cost.macs_per_pixel`)."""

@@ -100,14 +100,15 @@ def pool2(x: torch.Tensor) -> torch.Tensor:
 def conv1x1(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
     """A 1×1 convolution ``(B, C, H, W) -> (B, O, H, W)`` as a matrix product (``weight`` ``(O, C[, 1, 1])``).
 
-    The output is contiguous NCHW whether ``x`` is NCHW or ``channels_last``: oneDNN's 1×1 convolution
+    The output is contiguous NCHW whether ``x`` is NCHW (or a band of rows of an NCHW tensor) or
+    ``channels_last``: oneDNN's 1×1 convolution
     on NCHW frames spends most of its time reordering, and a channels-last result would have to be
     copied back before the element-wise work that follows.
     """
     b, c, h, w = x.shape
     wm = weight.reshape(weight.shape[0], c)
-    if x.is_contiguous():
-        xm = x.reshape(b, c, h * w)
+    if x.stride(-1) == 1 and (h == 1 or x.stride(-2) == w):  # each channel's rows follow on (NCHW, or a band of it)
+        xm = x.reshape(b, c, h * w)  # a view
     elif x.is_contiguous(memory_format=torch.channels_last):
         xm = x.permute(0, 2, 3, 1).reshape(b, h * w, c).transpose(1, 2)  # a view: (B, C, HW) strided
     else:

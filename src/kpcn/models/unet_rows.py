@@ -26,8 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from .layers import conv1x1, pool2, transform_input
-from .kernel_heads import _bounded_logits, _bounded_softmax, combine_levels
+from .kernel_heads import _softmax_weights, combine_levels
+from .layers import pool2, transform_input
 from .unet import UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -43,16 +43,6 @@ def clamped_rows(t: torch.Tensor, a: int, b: int) -> torch.Tensor:
         return t[..., a:b, :]
     idx = torch.arange(a, b, device=t.device).clamp_(0, h - 1)
     return t.index_select(-2, idx)
-
-
-def _softmax_weights(logits: torch.Tensor, s: float) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Unnormalised kernel weights ``exp(s tanh(logits / s))`` and their sum, to divide by after applying
-    them (3 channels to divide, not ``k*k``; equal to normalising first to rounding); for ``s > 80``, where
-    that exp could overflow, the ordinary softmax and None."""
-    if s > 80:
-        return _bounded_softmax(logits, s), None
-    w = _bounded_logits(logits, s).exp_()
-    return w, w.sum(dim=1, keepdim=True)
 
 
 def _apply(padded: torch.Tensor, weights, k: int) -> torch.Tensor:
@@ -114,7 +104,7 @@ class RowStream:
         elif signals.keys() != self._full.keys():
             raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
         kind, g = self.cfg.input_transform, self.branch.guide
-        self._guide[..., r0:r0 + n, :] = conv1x1(transform_input(x, kind), g.weight, g.bias).relu_()
+        self._guide[..., r0:r0 + n, :] = g(transform_input(x, kind)).relu_()
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
@@ -127,9 +117,7 @@ class RowStream:
             raise ValueError(f"RowStream.run: rows 0..{self._fed} of {self.padded_size[0]} fed")
         net, cfg = self.branch, self.cfg
         h, decoded = net.decode(net.encode_from(self._release_pooled()), summary)
-        c = h.shape[1]
-        self._low = conv1x1(h, net.head.weight[:, :c], net.head.bias)  # the guided head's half-resolution part
-        self._wg = net.head.weight[:, c:].reshape(net.head.out_channels, -1)
+        self._low = net.head.coarse_part(h)  # the guided head's half-resolution part
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
             weights, alphas = [], []
@@ -169,8 +157,7 @@ class RowStream:
         e0, e1 = max(r0 - m, 0), min(r1 + m, hp)
         z = F.interpolate(clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1), scale_factor=2, mode="bilinear",
                           align_corners=False)[..., 2:-2, :]
-        gb = self._guide[0, :, e0:e1, :]
-        z = z.add_(torch.mm(self._wg, gb.reshape(gb.shape[0], -1)).view(1, -1, e1 - e0, gb.shape[-1]))
+        z = z.add_(self.branch.head.guide_part(self._guide[..., e0:e1, :]))
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale)
         alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
         i0, n = r0 - e0, r1 - r0
