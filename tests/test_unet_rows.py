@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from kpcn import inference
-from kpcn.inference.pipeline import _tensors
+from kpcn.features import frame_to_tensors
 from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
@@ -70,10 +70,9 @@ def test_row_bands_read_the_rows_around_them(frame):
     whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False, rows=False)
     frame_value = spec.frame_value(frame)
     with torch.inference_mode():
-        right, _, bands = denoise_rows(frame, model, spec, frame_value, spec.branches, torch.device("cpu"), _tensors,
-                                       band=8)
+        right, _, bands = denoise_rows(frame, model, spec, frame_value, spec.branches, torch.device("cpu"), band=8)
         wrong, _, _ = denoise_rows(frame, model, dataclasses.replace(spec, halo=0), frame_value, spec.branches,
-                             torch.device("cpu"), _tensors, band=8)
+                                   torch.device("cpu"), band=8)
     assert bands == 16 and _rel(whole, right) < 1e-5  # 117 rows padded to 128, in bands of 8
     assert _rel(whole, wrong) > 1e-3
 
@@ -192,8 +191,7 @@ def test_light_groups_add_up_where_the_blend_dips_below_zero(mi):
     model = _model()
     spec = model.input_spec
     with torch.inference_mode():  # the control: this frame's diffuse output really dips below 0
-        x = spec.build(_tensors(frame, spec.layers, (slice(None), slice(None)), torch.device("cpu")),
-                       spec.frame_value(frame), spec.branches)
+        x = spec.build(frame_to_tensors(frame, spec.layers), spec.frame_value(frame), spec.branches)
         assert model.run_branch("diffuse", x["diffuse"]).min() < 0
     for rows in (True, False):
         res = inference.denoise_result(frame, model, device="cpu", layers=names, rows=rows)

@@ -59,10 +59,16 @@ GRAD_Y = slice(14, 24)
 FEATURE_VAR = slice(24, 27)
 
 
-def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS) -> dict[str, torch.Tensor]:
-    """Layers of a frame as float32 ``(1, C, H, W)`` tensors (checks they are present)."""
+def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None) -> dict[str, torch.Tensor]:
+    """Layers of a frame as float32 ``(1, C, H, W)`` tensors (checks they are present); ``crop``: a
+    ``(rows, columns)`` pair of slices to take; ``device``: where to put them."""
     frame.require(layers)
-    return {n: torch.from_numpy(np.ascontiguousarray(frame[n].transpose(2, 0, 1)))[None].float() for n in layers}
+    out = {}
+    for n in layers:
+        a = frame[n] if crop is None else frame[n][crop]
+        t = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].float()
+        out[n] = t if device is None else t.to(device, non_blocking=True)
+    return out
 
 
 def _mean_c(x: torch.Tensor) -> torch.Tensor:

@@ -35,6 +35,7 @@ import torch
 
 from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, InputSpec
+from ..features import frame_to_tensors
 from ..io import Frame, MissingLayerError
 
 #: a group's specular share is taken from the filtered layers where the filtered beauty specular is at least
@@ -80,11 +81,6 @@ def noisy_aov(frame: Frame, plan: AovPlan, region) -> np.ndarray:
     """The noisy value of a requested layer over ``region`` (its parts summed)."""
     return sum(np.maximum(frame[layer][region], 0.0) if plan.group else frame[layer][region]
                for layer in plan.parts.values())
-
-
-def _t(frame: Frame, layer: str, crop, device) -> torch.Tensor:
-    a = np.ascontiguousarray(frame[layer][crop].transpose(2, 0, 1))
-    return torch.from_numpy(a)[None].to(device)
 
 
 def aov_signals(plans: list[AovPlan], run, layer, albedo: torch.Tensor) -> dict[str, dict[str, torch.Tensor]]:
@@ -158,7 +154,7 @@ def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run,
     ``inputs`` and ``res`` are the model's inputs and outputs on the crop; a
     branch not in ``run`` is zero on the crop (its parts contribute 0).
     """
-    sig = aov_signals(plans, run, lambda name: _t(frame, name, crop, device), inputs["albedo"])
+    sig = aov_signals(plans, run, lambda name: frame_to_tensors(frame, (name,), crop, device)[name], inputs["albedo"])
     filtered = {}
     for b in run:
         if sig[b]:

@@ -41,6 +41,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
+from ..features import frame_to_tensors
 from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
@@ -123,14 +124,6 @@ def _color_variance(frame: Frame) -> np.ndarray | None:
     return None
 
 
-def _tensors(frame: Frame, names, crop, device: torch.device) -> dict[str, torch.Tensor]:
-    out = {}
-    for n in names:
-        a = frame[n][crop]
-        out[n] = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].to(device, non_blocking=True)
-    return out
-
-
 def _autocast(half: bool):
     return torch.autocast("cuda", dtype=torch.float16) if half else contextlib.nullcontext()
 
@@ -211,7 +204,7 @@ def denoise_result(
         if net.uses_frame_context and active and not (len(tiles) == 1 and tiles[0].crop == (slice(0, h), slice(0, w))):
             tc = time.perf_counter()
             whole = (slice(None), slice(None))
-            full = spec.build(_tensors(frame, spec.layers_for(active), whole, dev), frame_value, active)
+            full = spec.build(frame_to_tensors(frame, spec.layers_for(active), whole, dev), frame_value, active)
             with _autocast(use_half):
                 context = net.frame_context(full)
             del full
@@ -239,12 +232,12 @@ def denoise_result(
                 stats.tiles_zero += 1
                 continue
             if use_rows and crop == (slice(0, h), slice(0, w)):  # the whole frame, a band of rows at a time
-                out[...], denoised, stats.row_bands = denoise_rows(frame, net, spec, frame_value, run, dev, _tensors, plans)
+                out[...], denoised, stats.row_bands = denoise_rows(frame, net, spec, frame_value, run, dev, plans)
                 for name, v in denoised.items():
                     aov_out[name][...] = v
                 stats.tiles_run += 1
                 continue
-            inputs = spec.build(_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)
+            inputs = spec.build(frame_to_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)
             with _autocast(use_half):
                 res = net(inputs, context)
             if use_half and not torch.isfinite(res["color"]).all():

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..features import frame_to_tensors
 from ..io import Frame
 from ..models import unet_rows
 from ..models.unet_rows import clamped_rows
@@ -36,13 +37,12 @@ def supports_rows(net, height: int | None = None, width: int | None = None) -> b
     return height is None or width is None or height * width >= ROWS_MIN_PIXELS
 
 
-def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, tensors, plans=(), band: int | None = None
+def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(), band: int | None = None
                  ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     """Denoise ``frame`` (sanitised, the spec's layers) with ``net``'s row streams.
 
     ``branches``: those to run (the others are zero); ``frame_value``: the whole frame's depth scale or
-    noise precision; ``tensors(frame, layers, crop, device)``: the layer tensors of a crop (the pipeline's);
-    ``plans``: other layers to denoise with the beauty's kernels (:mod:`.aovs`).
+    noise precision; ``plans``: other layers to denoise with the beauty's kernels (:mod:`.aovs`).
 
     Returns:
         the colour ``(H, W, 3)`` float32, ``{plan name: (H, W, 3)}``, and the number of bands (of ``band``
@@ -66,12 +66,12 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, tensors
         r1 = min(r0 + band, hp)
         c0, c1 = min(r0, h - 1), min(r1 + spec.halo, h)  # padded rows >= h repeat row h - 1
         crop = (slice(c0, c1), slice(0, w))
-        inputs = spec.build(tensors(frame, layers, crop, device), frame_value, branches)
+        inputs = spec.build(frame_to_tensors(frame, layers, crop, device), frame_value, branches)
         if r0 < h:
             albedo[..., r0:min(r1, h), :] = inputs["albedo"][..., : min(r1, h) - r0, :]
         signals = {}
         if plans:  # the layers each branch filters, over the same padded rows
-            signals = aov_signals(plans, branches, lambda n: rows_of(tensors(frame, [n], crop, device)[n], r0, r1, c0),
+            signals = aov_signals(plans, branches, lambda n: rows_of(frame_to_tensors(frame, (n,), crop, device)[n], r0, r1, c0),
                                   rows_of(inputs["albedo"], r0, r1, c0))
         for b, s in streams.items():
             s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b))
