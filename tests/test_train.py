@@ -242,3 +242,41 @@ def test_init_extend_starts_from_the_narrower_models_outputs(tiny_dataset, tmp_p
     deep.model.update(input_spec="color_albedo_normal_noise", layers=4)
     with pytest.raises(ConfigError, match="layers"):
         train(deep, progress=False)
+
+
+def test_init_extend_adds_a_coarser_kernel_level(tiny_dataset, tmp_path, render):
+    """A U-Net given one more (coarser) kernel level keeps every kernel of the file's levels; the level that
+    gains a coarser neighbour blends it in with its initial weight (zero weights, the model's bias: α = ½),
+    and the new level's head is the model's own initialisation. Cutting a level is refused."""
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    unet = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
+                guide_channels=4, summary_channels=4)
+
+    def ucfg(name, scales, **kw):
+        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
+        cfg.model = dict(unet, kernel_scales=scales)
+        return cfg
+
+    train(ucfg("a", 2), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    with pytest.raises(ConfigError, match="kernel_scales"):  # not without saying so
+        train(ucfg("b", 3, init=str(src)), progress=False)
+    train(ucfg("b", 3, init=str(src), init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    two, three = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    spec = two.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+    with torch.no_grad():
+        ks2, ks3 = two.diffuse.kernels(x), three.diffuse.kernels(x)
+    assert len(ks3.kernels) == 3 and ks3.alphas[2] is None
+    for level in (0, 1):
+        torch.testing.assert_close(ks3.kernels[level], ks2.kernels[level], rtol=0, atol=1e-6)
+    torch.testing.assert_close(ks3.alphas[0], ks2.alphas[0], rtol=0, atol=1e-6)
+    assert ks2.alphas[1] is None
+    torch.testing.assert_close(ks3.alphas[1], torch.full_like(ks3.alphas[1], 0.5), rtol=0, atol=1e-6)
+    with pytest.raises(ConfigError, match="can be added|lacks"):  # a model can be extended, not cut
+        train(ucfg("c", 1, init=str(src), init_extend=True), progress=False)
+    assert not (tmp_path / "c").exists()

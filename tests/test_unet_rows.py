@@ -48,7 +48,7 @@ def _rel(a, b) -> float:
     return float(np.abs(a - b).max() / max(np.abs(a).max(), 1e-12))
 
 
-@pytest.mark.parametrize("kw", [{}, {"kernel_scales": 1}, {"kernel_scales": 2, "kernel_size": 3},
+@pytest.mark.parametrize("kw", [{}, {"kernel_scales": 1}, {"kernel_scales": 4}, {"kernel_scales": 2, "kernel_size": 3},
                                 {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
                                 {"input_spec": "color_albedo_normal_noise"}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")

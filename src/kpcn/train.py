@@ -64,6 +64,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 from pathlib import Path
@@ -120,7 +121,8 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate"} if cfg.train.init_extend else set())
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales"}
+                       if cfg.train.init_extend else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
                 if k not in free and record["hparams"].get(k) != v}
     if record["model"] != want.get("name") or mismatch:
@@ -136,17 +138,23 @@ def _load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
 def _extend(state: dict, target: dict, path) -> dict:
     """``state`` made to fit ``target`` (``train.init_extend``): a tensor that reads fewer input channels (dim 1)
     is zero-padded to the new ones (the last: a zero weight ignores them); a conv with more outputs (dim 0: the
-    demodulation weight's channel) gets zero weights and the model's own initial bias for them; a precision gate
-    the file lacks takes the model's own initial value. Anything else that differs is a ConfigError."""
+    demodulation weight's channel, or the blending weight of a U-Net kernel level that gains a coarser level)
+    gets zero weights and the model's own initial bias for them; a precision gate, or the head of a coarser
+    kernel level (``heads.<i>``), that the file lacks takes the model's own initial value. Anything else that
+    differs is a ConfigError."""
     out = dict(state)
     for k, t in target.items():
         if k not in state:
-            if not k.endswith(".gate"):
-                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate can be added)")
+            if not (k.endswith(".gate") or re.search(r"(^|\.)heads\.\d+\.(weight|bias)$", k)):
+                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate or a coarser "
+                                  f"kernel level can be added)")
             out[k] = t.detach().clone()
     for k, v in state.items():
         t = target.get(k)
-        if t is None or t.shape == v.shape:
+        if t is None:
+            raise ConfigError(f"train.init_extend: {path} has {k}, which the config's model lacks (a model can "
+                              f"only be extended, not cut)")
+        if t.shape == v.shape:
             continue
         if v.dim() != t.dim() or v.shape[2:] != t.shape[2:] or v.shape[0] > t.shape[0] \
                 or (v.dim() >= 2 and v.shape[1] > t.shape[1]):
