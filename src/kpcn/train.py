@@ -142,6 +142,10 @@ def _extend(state: dict, target: dict, path) -> dict:
     gets zero weights and the model's own initial bias for them; a precision gate, or the head of a coarser
     kernel level (``heads.<i>``), that the file lacks takes the model's own initial value. Anything else that
     differs is a ConfigError."""
+    cut = [k for k in state if k not in target]
+    if cut:
+        raise ConfigError(f"train.init_extend: {path} has {', '.join(cut)}, which the config's model lacks (a model "
+                          f"can only be extended, not cut)")
     out = dict(state)
     for k, t in target.items():
         if k not in state:
@@ -150,10 +154,7 @@ def _extend(state: dict, target: dict, path) -> dict:
                                   f"kernel level can be added)")
             out[k] = t.detach().clone()
     for k, v in state.items():
-        t = target.get(k)
-        if t is None:
-            raise ConfigError(f"train.init_extend: {path} has {k}, which the config's model lacks (a model can "
-                              f"only be extended, not cut)")
+        t = target[k]
         if t.shape == v.shape:
             continue
         if v.dim() != t.dim() or v.shape[2:] != t.shape[2:] or v.shape[0] > t.shape[0] \
