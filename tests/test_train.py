@@ -280,3 +280,45 @@ def test_init_extend_adds_a_coarser_kernel_level(tiny_dataset, tmp_path, render)
     with pytest.raises(ConfigError, match="heads.0.weight.*lacks"):  # a model can be extended, not cut
         train(ucfg("c", 1, init=str(src), init_extend=True), progress=False)
     assert not (tmp_path / "c").exists()
+
+
+def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
+    """A U-Net with wider levels, started from a narrower file, denoises a real render as the file does
+    (each channel group keeps its place: a decoder conv reads [upsampled, skip], the summary [mean, std]);
+    its new channels are live (the loss has a gradient on the zero weights that read them). Narrowing is
+    refused before anything is written."""
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.inference import load_model
+
+    unet = dict(name="unet_kpcn", convs_per_level=1, kernel_size=3, stem="half", guide_channels=4,
+                summary_channels=4, kernel_scales=2)
+
+    def ucfg(name, widths, **kw):
+        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
+        cfg.model = dict(unet, widths=widths)
+        return cfg
+
+    train(ucfg("a", [8, 12, 16]), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    with pytest.raises(ConfigError, match="widths"):  # not without saying so
+        train(ucfg("b", [8, 20, 24], init=str(src)), progress=False)
+    train(ucfg("b", [8, 20, 24], init=str(src), init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    narrow, wide = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    assert wide.diffuse.enc[2][0].weight.shape == (24, 20, 3, 3)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a, b = kpcn.denoise(frame, narrow, device="cpu"), kpcn.denoise(frame, wide, device="cpu")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    # the file's level-1 decoder conv reads the new bottleneck channels 16..23 through zero weights (moved
+    # only by the one step at lr 1e-12), and they learn
+    w = wide.diffuse.dec[0][0].weight
+    assert w[:12, 16:24].abs().max() <= 1e-9
+    spec = wide.input_spec
+    from kpcn.features import frame_to_tensors
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    w.requires_grad_(True)
+    wide.diffuse(x["diffuse"]).square().mean().backward()
+    assert w.grad[:12, 16:24].abs().max() > 0
+    with pytest.raises(ConfigError, match="can only grow"):
+        train(ucfg("c", [8, 12, 12], init=str(src), init_extend=True), progress=False)
+    assert not (tmp_path / "c").exists()

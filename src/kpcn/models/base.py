@@ -92,6 +92,16 @@ class DenoiserModel(nn.Module):
         return (f"name={self.name!r}, input_spec={self.input_spec.name!r}, receptive_radius={self.receptive_radius}, "
                 f"alignment={self.alignment}, frame_context={self.uses_frame_context}")
 
+    def channel_groups(self) -> dict[str, tuple[tuple[int, ...] | None, tuple[int, ...]]]:
+        """How the convs' channels are grouped, for widening a trained model (``train.init_extend``).
+
+        ``{module name: (output groups, input groups)}``, each a tuple of channel counts in the
+        order the conv stacks them (a decoder conv reads ``(upsampled, skip)``). Output groups
+        ``None``: the conv's outputs are results (kernel logits), not hidden channels. A model that
+        lists no module (the default) can only gain channels at the end of a conv's inputs or outputs.
+        """
+        return {}
+
     # ------------------------------------------------------------------ computation
     def frame_context(self, inputs: dict[str, torch.Tensor]) -> Any:
         """Whole-frame context computed once per frame (``None`` for local models)."""

@@ -190,6 +190,29 @@ class UNetBranch(nn.Module):
         self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
 
+    def channel_groups(self) -> dict[str, tuple[tuple[int, ...] | None, tuple[int, ...]]]:
+        """:meth:`DenoiserModel.channel_groups` of this branch (names relative to it)."""
+        cfg, w = self.cfg, list(self.cfg.widths)
+        n, s = cfg.convs_per_level, cfg.summary_channels
+        groups: dict[str, tuple[tuple[int, ...] | None, tuple[int, ...]]] = {}
+        c_prev = get_input_spec(cfg.input_spec).channels
+        for level, width in enumerate(w):
+            for i in range(n):  # Sequential: conv, ReLU, conv, ReLU, ...
+                groups[f"enc.{level}.{2 * i}"] = ((width,), (c_prev if i == 0 else width,))
+            c_prev = width
+        if s:
+            groups["summary"] = ((s,), (w[-1], w[-1]))  # [mean, std] of the bottleneck
+        below = (w[-1], s) if s else (w[-1],)
+        for j, level in enumerate(range(len(w) - 2, -1, -1)):
+            for i in range(n):
+                groups[f"dec.{j}.{2 * i}"] = ((w[level],), below + (w[level],) if i == 0 else (w[level],))
+            below = (w[level],)
+        off = cfg.offset
+        groups["head"] = (None, (w[0], cfg.guide_channels) if off else (w[0],))
+        for lv in range(1, cfg.kernel_scales):
+            groups[f"heads.{lv - 1}"] = (None, (w[lv - off],))
+        return groups
+
     def _make_head(self, width: int, out: int, kind=None) -> nn.Conv2d:
         k, cfg = self.cfg.kernel_size, self.cfg
         head = (kind or Conv1x1)(width, out, 1)
@@ -311,6 +334,9 @@ class UNetKPCN(DenoiserModel):
     def streams_rows(self) -> bool:
         """``stem: half``: a frame can be run a band of rows at a time (:meth:`row_stream`)."""
         return self.config.offset == 1
+
+    def channel_groups(self) -> dict[str, tuple[tuple[int, ...] | None, tuple[int, ...]]]:
+        return {f"{b}.{k}": v for b in self.branches for k, v in getattr(self, b).channel_groups().items()}
 
     def row_stream(self, name: str, height: int, width: int, device=None):
         """A :class:`~kpcn.models.unet_rows.RowStream` of branch ``name`` for a ``height × width`` frame."""
