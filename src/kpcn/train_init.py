@@ -1,0 +1,121 @@
+"""The weights a training run starts from: ``train.init`` (a weights file or a shipped ``model:tag``), and
+``train.init_extend``, which lets the config's model extend the file's (more input channels, a precision gate,
+a demodulation weight, a coarser U-Net kernel level, wider U-Net levels) so that it starts from the file's
+outputs."""
+from __future__ import annotations
+
+import re
+
+import torch
+
+from .config import ConfigError, to_dict
+from .models.registry import create_model
+from .train_config import RunConfig
+
+__all__ = ["load_init"]
+
+
+def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
+    """Load ``cfg.train.init`` (a weights file or a shipped ``model:tag``) into ``model``; the file's
+    model and the hyper-parameters the config sets must agree (:class:`ConfigError` otherwise)."""
+    from .checkpoint import read_weights
+    from .inference.weights import DefaultWeightsMissing, resolve_weights
+
+    init = cfg.train.init
+    try:
+        path = resolve_weights(init)
+    except (DefaultWeightsMissing, FileNotFoundError) as exc:
+        raise ConfigError(f"train.init: no weights file {init!r} (a .safetensors path or a shipped model:tag): "
+                          f"{exc}") from None
+    record, weights = read_weights(path)
+    want = to_dict(cfg)["model"]
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths"}
+                       if cfg.train.init_extend else set())
+    mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
+                if k not in free and record["hparams"].get(k) != v}
+    if record["model"] != want.get("name") or mismatch:
+        raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
+                          f"config's {want.get('name')} (file, config): {mismatch}")
+    state = {k: v.to(torch.float32) for k, v in weights.items()}
+    if cfg.train.init_extend:
+        groups = model.channel_groups()
+        source_groups = create_model(**record["hparams"]).channel_groups() if groups else None
+        state = _extend(state, model.state_dict(), path, groups, source_groups)
+    model.load_state_dict(state)
+    return str(path)
+
+
+def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None) -> dict:
+    """``state`` made to fit ``target`` (``train.init_extend``).
+
+    * A conv the model lists in ``groups`` (:meth:`~kpcn.models.base.DenoiserModel.channel_groups`, the
+      file's in ``source_groups``) may be wider: each of the file's channel groups goes to the start of the
+      model's group. New hidden channels keep the model's initial weights; the file's outputs read them
+      with zero weights, so the widened model computes what the file's did.
+    * Any other tensor that reads fewer input channels (dim 1) is zero-padded to the new ones (the last:
+      a zero weight ignores them).
+    * A conv with more outputs (dim 0: the demodulation weight's channel, or the blending weight of a
+      U-Net kernel level that gains a coarser level) gets zero weights and the model's own initial bias
+      for them.
+    * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes
+      the model's own initial value.
+
+    Anything else that differs is a ConfigError.
+    """
+    cut = [k for k in state if k not in target]
+    if cut:
+        raise ConfigError(f"train.init_extend: {path} has {', '.join(cut)}, which the config's model lacks (a model "
+                          f"can only be extended, not cut)")
+    out = dict(state)
+    for k, t in target.items():
+        if k not in state:
+            if not (k.endswith(".gate") or re.search(r"(^|\.)heads\.\d+\.(weight|bias)$", k)):
+                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate or a coarser "
+                                  f"kernel level can be added)")
+            out[k] = t.detach().clone()
+    groups, source_groups = groups or {}, source_groups or {}
+    for k, v in state.items():
+        t = target[k]
+        module = k.rpartition(".")[0]
+        if module in groups and module in source_groups and t.shape != v.shape:
+            out[k] = _widen(k, v, t, source_groups[module], groups[module], path)
+            continue
+        if t.shape == v.shape:
+            continue
+        if v.dim() != t.dim() or v.shape[2:] != t.shape[2:] or v.shape[0] > t.shape[0] \
+                or (v.dim() >= 2 and v.shape[1] > t.shape[1]):
+            raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is "
+                              f"{tuple(t.shape)} (only more input or output channels can be added)")
+        w = t.detach().clone().to(v.dtype) if v.dim() == 1 else torch.zeros(t.shape, dtype=v.dtype)
+        w[tuple(slice(0, n) for n in v.shape)] = v
+        out[k] = w
+    return out
+
+
+def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path) -> torch.Tensor:
+    """Where the file's channels (groups ``src``) sit among the model's (groups ``dst``)."""
+    if len(src) != len(dst) or any(a > b for a, b in zip(src, dst)):
+        raise ConfigError(f"train.init_extend: {path}'s {k} has channel groups {src}; the model's are {dst} "
+                          f"(a group can only grow)")
+    starts = [sum(dst[:i]) for i in range(len(dst))]
+    return torch.cat([torch.arange(a) + s for a, s in zip(src, starts)])
+
+
+def _widen(k: str, v: torch.Tensor, t: torch.Tensor, src, dst, path) -> torch.Tensor:
+    """The file's tensor ``v`` placed in the model's ``t`` by channel groups (see :func:`_extend`)."""
+    (src_out, src_in), (dst_out, dst_in) = src, dst
+    hidden = dst_out is not None
+    rows = _group_index(k, src_out if hidden else (v.shape[0],), dst_out if hidden else (t.shape[0],), path)
+    w = t.detach().clone().to(v.dtype)
+    if v.dim() == 1:
+        w[rows] = v
+        return w
+    if v.shape[2:] != t.shape[2:]:
+        raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is {tuple(t.shape)}")
+    cols = _group_index(k, src_in, dst_in, path)
+    if not hidden:  # new result channels start silent (zero weights, the model's initial bias)
+        w.zero_()
+    block = torch.zeros((len(rows),) + tuple(t.shape[1:]), dtype=v.dtype)
+    block[:, cols] = v
+    w[rows] = block
+    return w
