@@ -124,7 +124,7 @@ def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_pat
 
 
 def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_dataset, tmp_path):
-    from kpcn.train_data import CONVERGED_SPP, split_pairs
+    from kpcn.train_data import CONVERGED_SPP, converged_pairs, split_pairs
 
     cfg = tiny_cfg(tiny_dataset, tmp_path)
     plain, val = split_pairs(cfg, progress=False)
@@ -139,6 +139,14 @@ def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_data
     assert len(weighted) == len(plain) + 3 * len(extra)
     key = lambda p: p.scene  # noqa: E731
     assert sorted((p for p in weighted if p.spp == CONVERGED_SPP), key=key) == sorted(extra * 3, key=key)
+    # with the validation frames from their own folder (data.val_root) every training scene is trained on,
+    # and its converged pair is still added (they were once dropped on this path)
+    cfg.data.val_root = str(tiny_dataset)
+    own_val, val3 = split_pairs(cfg, progress=False)
+    conv = [p for p in own_val if p.spp == CONVERGED_SPP]
+    scenes = {p.scene for p in own_val if p.spp != CONVERGED_SPP}
+    assert scenes == {p.scene for p in plain + val} and val3 and all(p.spp != CONVERGED_SPP for p in val3)
+    assert sorted(conv, key=key) == sorted(converged_pairs([p for p in own_val if p.spp != CONVERGED_SPP]) * 3, key=key)
 
 
 def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tmp_path):

@@ -74,17 +74,19 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
         pairs += more
     if cfg.data.val_root:
         try:
-            val_pairs = read_manifest(cfg.data.val_root, cfg.data.spp)
+            val = read_manifest(cfg.data.val_root, cfg.data.spp)
         except FileNotFoundError as exc:
             raise DatasetError(f"data.val_root: {exc}") from None
-        return pairs, val_pairs
-    scenes = sorted({p.scene for p in pairs})
-    n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
-    val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
-    train = [p for p in pairs if p.scene not in val_scenes]
+        train = pairs
+    else:
+        scenes = sorted({p.scene for p in pairs})
+        n_val = min(cfg.data.val_scenes, max(len(scenes) - 1, 0))
+        val_scenes = set(scenes[len(scenes) - n_val :]) if n_val else set()
+        train = [p for p in pairs if p.scene not in val_scenes]
+        val = [p for p in pairs if p.scene in val_scenes]
+    # the converged pairs join the training pairs however the validation frames were chosen
     converged = converged_pairs(train) * cfg.data.converged_weight if cfg.data.converged_inputs else []
-    return train + converged, \
-        [p for p in pairs if p.scene in val_scenes]
+    return train + converged, val
 
 
 def converged_pairs(pairs):
