@@ -151,7 +151,7 @@ def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_data
 
 def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tmp_path):
     from kpcn.render import DatasetError, render_dataset
-    from kpcn.train_data import split_pairs
+    from kpcn.train_data import CONVERGED_SPP, split_pairs
 
     other = tmp_path / "other"
     render_dataset(other, n_scenes=2, spp_list=(4, 8), ref_spp=32, resolution=(32, 32), first_seed=500, progress=False)
@@ -162,6 +162,17 @@ def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tm
     scenes = {p.scene for p in train_pairs + val_pairs}
     assert {p.scene for p in base_train + base_val} < scenes and len(scenes) == len({p.scene for p in base_train + base_val}) + 2
     assert any(str(p.input_path).startswith(str(other)) for p in train_pairs + val_pairs)
+    # converged pairs only from the data sets whose references are clean enough (other's have 32 spp, root's 128)
+    cfg.data.converged_inputs = True
+    every = {p.scene for p in split_pairs(cfg, progress=False)[0] if p.spp == CONVERGED_SPP}
+    cfg.data.converged_min_ref_spp = 64
+    clean = {p.scene for p in split_pairs(cfg, progress=False)[0] if p.spp == CONVERGED_SPP}
+    other_scenes = {p.scene for p in train_pairs if str(p.input_path).startswith(str(other))}
+    assert other_scenes and other_scenes <= every and clean == every - other_scenes and clean
+    cfg.data.converged_min_ref_spp = 4096
+    with pytest.raises(DatasetError, match="converged_min_ref_spp=4096.*32 128"):
+        split_pairs(cfg, progress=False)
+    cfg.data.converged_inputs, cfg.data.converged_min_ref_spp = False, 0
     cfg.data.extra_roots = [str(tiny_dataset)]
     with pytest.raises(DatasetError, match="repeats scene names"):
         split_pairs(cfg, progress=False)

@@ -50,6 +50,10 @@ class DataConfig:
     #: how many times each converged pair is listed (its share of the patches drawn): a model without
     #: variance layers must learn from data alone to leave a clean frame as it is
     converged_weight: int = 1
+    #: converged pairs only from data sets whose references have at least this many spp (0: all). A
+    #: reference close to the inputs' spp is still noisy: listed as its own target, it teaches the model to
+    #: keep the noise of a high-spp input (measured: 1024-spp references against 128-256-spp inputs)
+    converged_min_ref_spp: int = 0
     patch_size: int = 65
     patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
     sampling: str = "importance"
@@ -72,7 +76,7 @@ class DataConfig:
             raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
         for key in ("patch_size", "patches_per_frame", "render_scenes", "converged_weight"):
             _at_least("data", self, key, 1)
-        for key in ("val_scenes", "render_first_seed", "workers"):
+        for key in ("val_scenes", "render_first_seed", "workers", "converged_min_ref_spp"):
             _at_least("data", self, key, 0)
         if not isinstance(self.store, str) or not self.store.strip():
             raise ConfigError(f"data.store: expected auto, none or a folder, got {self.store!r}")

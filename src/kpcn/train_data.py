@@ -61,6 +61,7 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
 
     root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
     pairs = read_manifest(root, cfg.data.spp)
+    ref_spp = {p.scene: _ref_spp(root) for p in pairs}
     for extra in cfg.data.extra_roots:  # more rendered data sets (complete ones; never rendered here)
         try:
             more = read_manifest(extra, cfg.data.spp)
@@ -72,6 +73,7 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
                                f"({', '.join(clash[:5])}{' ...' if len(clash) > 5 else ''}); render it with "
                                f"another --first-seed")
         pairs += more
+        ref_spp.update({p.scene: _ref_spp(extra) for p in more})
     if cfg.data.val_root:
         try:
             val = read_manifest(cfg.data.val_root, cfg.data.spp)
@@ -85,8 +87,22 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
         train = [p for p in pairs if p.scene not in val_scenes]
         val = [p for p in pairs if p.scene in val_scenes]
     # the converged pairs join the training pairs however the validation frames were chosen
-    converged = converged_pairs(train) * cfg.data.converged_weight if cfg.data.converged_inputs else []
+    converged = []
+    if cfg.data.converged_inputs:
+        clean = [p for p in train if ref_spp[p.scene] >= cfg.data.converged_min_ref_spp]
+        if not clean:
+            raise DatasetError(f"data.converged_min_ref_spp={cfg.data.converged_min_ref_spp}: no training data set "
+                               f"has references of that many spp (they have "
+                               f"{' '.join(map(str, sorted(set(ref_spp.values()))))}); lower it or render one")
+        converged = converged_pairs(clean) * cfg.data.converged_weight
     return train + converged, val
+
+
+def _ref_spp(root) -> int:
+    """The reference spp of the rendered data set in ``root`` (as its manifest records it)."""
+    from .render import dataset_status
+
+    return int(dataset_status(Path(root)).settings["ref_spp"])
 
 
 def converged_pairs(pairs):
