@@ -377,4 +377,4 @@ register_weights("unet_kpcn", "fast", "unet_fast.safetensors",
 register_weights("unet_kpcn", "fast4", "unet_fast4.safetensors", default=True,
                  description="unet_kpcn:fast with a fourth kernel level at 1/8 resolution (footprint up to 40 px), "
                              "26 k multiply-adds per pixel (configs/unet_fast4.yaml): fine-tuned from unet_kpcn:fast on the "
-                             "CPU on 24 + 38 procedural 256x256 scenes, converged inputs from the 2048-spp references")
+                             "CPU on 24 + 38 procedural 256x256 scenes, converged inputs from the 2048-spp references (four runs)")
