@@ -61,7 +61,7 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
 
     root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
     pairs = read_manifest(root, cfg.data.spp)
-    ref_spp = {p.scene: _ref_spp(root) for p in pairs}
+    ref_spp = dict.fromkeys((p.scene for p in pairs), _ref_spp(root))  # one manifest read per data set
     for extra in cfg.data.extra_roots:  # more rendered data sets (complete ones; never rendered here)
         try:
             more = read_manifest(extra, cfg.data.spp)
@@ -73,7 +73,7 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
                                f"({', '.join(clash[:5])}{' ...' if len(clash) > 5 else ''}); render it with "
                                f"another --first-seed")
         pairs += more
-        ref_spp.update({p.scene: _ref_spp(extra) for p in more})
+        ref_spp.update(dict.fromkeys((p.scene for p in more), _ref_spp(extra)))
     if cfg.data.val_root:
         try:
             val = read_manifest(cfg.data.val_root, cfg.data.spp)
