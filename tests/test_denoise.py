@@ -403,3 +403,43 @@ def test_bench_denoise_skip_smoke(render, capsys):
     rc = SUBCOMMANDS["denoise"](["--skip", "--sizes", "24", "--tile", "8", "--repeats", "1", "--scenes", "test:no_hit"])
     out = capsys.readouterr().out
     assert rc == 0 and "test:no_hit" in out and "tiles passed through" in out
+
+
+_HEAP_SCRIPT = r"""
+import torch
+from kpcn.inference.heap import heap_tuning_available, reuse_heap
+
+def rss_mb():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+
+def touch_and_free(mb):
+    t = torch.empty(mb << 18)  # float32: mb MB
+    t.fill_(1.0)
+    del t
+
+print(heap_tuning_available())
+base = rss_mb()
+touch_and_free(256)
+print(rss_mb() - base)          # no block: glibc maps and unmaps a block this large
+with reuse_heap():
+    with reuse_heap():
+        touch_and_free(256)
+    print(rss_mb() - base)      # inner exit: still held for reuse
+    for _ in range(4):          # reused (an aligned request may not fit the one freed block: at most two)
+        touch_and_free(256)
+    print(rss_mb() - base)
+print(rss_mb() - base)          # outer exit: given back
+"""
+
+
+def test_reuse_heap_keeps_freed_memory_during_a_call_and_gives_it_back_after():
+    # a fresh interpreter: the heap settings are per process
+    out = subprocess.run([sys.executable, "-c", _HEAP_SCRIPT], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "True", "this test needs glibc (the heap tuning is a no-op elsewhere)"
+    plain, inner, reused, after = map(float, out[1:])
+    assert plain < 64, f"a freed 256 MB block stayed resident without the tuning: +{plain:.0f} MB"
+    assert inner > 200, f"a freed block was not kept for reuse inside the block: +{inner:.0f} MB"
+    assert reused < 2 * 256 + 64, f"freed blocks not reused: +{reused:.0f} MB after five 256 MB blocks"
+    assert after < 64, f"memory not given back when the outermost block ended: +{after:.0f} MB"

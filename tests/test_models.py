@@ -305,3 +305,31 @@ def test_logvar_transform_resolves_small_variances():
     assert log1p_gap < 1e-2 < 4.0 < logvar_gap  # log(1e-3 / 1e-5) ~ 4.6 apart
     other = [c for c in range(N_FEATURES) if c not in VARIANCE_CHANNELS]
     assert torch.equal(transform_input(x, "logvar")[:, other], transform_input(x, "log")[:, other])
+
+
+def test_up_cat_conv_equals_upsample_concatenate_convolve():
+    # the decoder's fused first conv (a transposed conv of the coarse map + a conv of the skip) against the
+    # plain nearest upsampling, concatenation and 3x3 conv, in float64, borders included, both memory formats
+    from kpcn.models.layers import UpCatConv, up_cat_conv3x3
+
+    g = torch.Generator().manual_seed(0)
+    for b, cc, cs, o, h, w in [(2, 5, 3, 4, 3, 7), (1, 8, 6, 5, 1, 1), (1, 2, 3, 6, 9, 4)]:
+        coarse = torch.randn(b, cc, h, w, generator=g, dtype=torch.float64)
+        skip = torch.randn(b, cs, 2 * h, 2 * w, generator=g, dtype=torch.float64)
+        weight = torch.randn(o, cc + cs, 3, 3, generator=g, dtype=torch.float64)
+        bias = torch.randn(o, generator=g, dtype=torch.float64)
+        want = F.conv2d(torch.cat([F.interpolate(coarse, scale_factor=2, mode="nearest"), skip], 1), weight, bias,
+                        padding=1)
+        for fmt in (torch.contiguous_format, torch.channels_last):
+            got = up_cat_conv3x3(coarse.contiguous(memory_format=fmt), skip.contiguous(memory_format=fmt), weight, bias)
+            torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+        # the module: the plain path with autograd, the fused one without; the same parameters
+        mod = UpCatConv(cc + cs, o, 3, padding=1).double()
+        with torch.no_grad():
+            mod.weight.copy_(weight), mod.bias.copy_(bias)
+            torch.testing.assert_close(mod((coarse, skip)), want, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(mod((coarse, skip)), want, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="not twice coarse"):
+        up_cat_conv3x3(torch.zeros(1, 2, 3, 3), torch.zeros(1, 1, 5, 6), torch.zeros(1, 3, 3, 3))
+    with pytest.raises(ValueError, match="3x3 kernel over 2 \\+ 1"):
+        up_cat_conv3x3(torch.zeros(1, 2, 3, 3), torch.zeros(1, 1, 6, 6), torch.zeros(1, 4, 3, 3))

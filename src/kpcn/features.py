@@ -71,10 +71,6 @@ def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None) 
     return out
 
 
-def _mean_c(x: torch.Tensor) -> torch.Tensor:
-    return x.mean(dim=1, keepdim=True)
-
-
 def gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Forward differences of ``(B, C, H, W)`` in x and y, zero on the last column / row."""
     gx = torch.zeros_like(x)
@@ -127,11 +123,16 @@ def bound_variance(var: torch.Tensor, mean: torch.Tensor, unit_range: bool = Fal
         unchanged) and the number of clamped values (a 0-dim tensor).
     """
     v = torch.nan_to_num(var.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-    bound = variance_bound(torch.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0), unit_range)
+    return _bound_finite(v, torch.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0), unit_range)
+
+
+def _bound_finite(v: torch.Tensor, mean: torch.Tensor, unit_range: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`bound_variance` of a finite, non-negative ``v`` and a finite ``mean`` (``v`` clamped in place)."""
+    bound = variance_bound(mean, unit_range)
     if bound.shape[1] != v.shape[1]:
         bound = bound.amax(dim=1, keepdim=True)
     over = v > bound
-    return torch.where(over, bound, v), over.sum()
+    return torch.minimum(v, bound, out=v), over.sum()
 
 
 def _warn_clamped(counts: Mapping[str, torch.Tensor]) -> None:
@@ -148,21 +149,6 @@ def _warn_clamped(counts: Mapping[str, torch.Tensor]) -> None:
             RuntimeWarning,
             stacklevel=3,
         )
-
-
-def _variance(v: torch.Tensor) -> torch.Tensor:
-    """One-channel variance: non-finite and negative values zeroed, mean over RGB."""
-    return _mean_c(_variance_rgb(v))
-
-
-def diffuse_color(diffuse: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
-    """Irradiance-like diffuse branch colour ``diffuse / (albedo + eps)`` (negatives clamped)."""
-    return diffuse.clamp_min(0.0) / (albedo.clamp_min(0.0) + EPS)
-
-
-def specular_color(specular: torch.Tensor) -> torch.Tensor:
-    """Log-space specular branch colour ``log1p(max(specular, 0))``."""
-    return torch.log1p(specular.clamp_min(0.0))
 
 
 @dataclass
@@ -214,10 +200,12 @@ def branch_features(
 ) -> dict[str, torch.Tensor]:
     """The 27-channel features of only the listed branches, plus the clamped albedo.
 
-    Gives exactly the tensors of :func:`kpcn.features.make_features` (same ops
-    on the same values; a test checks bit equality) but builds a branch's
-    channels only when it is listed, reads only the buffers those branches
-    need, and computes the shared normal/albedo/depth gradients once.
+    What :func:`kpcn.features.make_features` returns, as a dict; builds a
+    branch's channels only when it is listed, reads only the buffers those
+    branches need, computes the shared normal/albedo/depth gradients and
+    variances once, and writes each branch's channels in place into one
+    tensor (no concatenation: on a 1080p frame in row bands this took a third
+    off the features' time).
 
     Args:
         buffers: ``(B, C, H, W)`` tensors named as in :data:`INPUT_LAYERS`
@@ -237,6 +225,10 @@ def branch_features(
     missing = [n for n in need if n not in buffers]
     if missing:
         raise KeyError(f"branch_features: missing buffers {missing}; got {sorted(buffers)}")
+    unknown = [n for n in branches if n not in BRANCHES]
+    if unknown:
+        raise ValueError(f"branch_features: unknown branch {unknown[0]!r}; expected one of {BRANCHES}")
+    # from here on every buffer is finite (its own copy), and every variance finite and >= 0
     b = {k: torch.nan_to_num(buffers[k].float(), nan=0.0, posinf=0.0, neginf=0.0) for k in need}
     if variances:  # bound every variance by what its layer's mean allows, before any division
         clamped = {}
@@ -245,41 +237,60 @@ def branch_features(
                 layer = k[: -len("Variance")]
                 var = b[k][:, :1] if layer == "depth" else b[k]
                 mean = b[layer][:, :1] if layer == "depth" else b[layer]
-                b[k], clamped[k] = bound_variance(var, mean, unit_range=layer == "normal")
+                b[k], clamped[k] = _bound_finite(var.clamp_min(0.0), mean, layer == "normal")
         _warn_clamped(clamped)
-    albedo = b["albedo"].clamp_min(0.0)
-    depth = b["depth"][:, :1].clamp_min(0.0)
+    albedo = b["albedo"].clamp_min_(0.0)
+    depth = b["depth"][:, :1].clamp_min_(0.0)
     if depth_scale is None:
         depth_scale = depth_scale_of(depth)
     depth = depth / depth_scale
-    if variances:
-        var_n = _variance(b["normalVariance"])
-        var_a = _variance(b["albedoVariance"])
-        var_d = _variance(b["depthVariance"][:, :1]) / (torch.as_tensor(depth_scale) ** 2)
-    aux_gx, aux_gy = gradients(torch.cat([b["normal"], albedo, depth], dim=1))
+    # each branch's channels are written in place into one tensor (no concatenation): colour, its
+    # variance, x-gradients of colour and of normal/albedo/depth, the same in y, the feature variances
+    n_ch = N_FEATURES if variances else N_FEATURES - 4
+    shape = (albedo.shape[0], n_ch) + tuple(albedo.shape[-2:])
+    v = 1 if variances else 0
+    gx_at, gy_at = 3 + v, 13 + v  # first x- and y-gradient channels
     out = {"albedo": albedo}
+    first = None
     for name in branches:
+        x = torch.empty(shape, dtype=albedo.dtype, device=albedo.device)
+        color = x[:, 0:3]
         if name == "diffuse":
-            color = diffuse_color(b["diffuse"], albedo)
+            torch.div(b["diffuse"].clamp_min_(0.0), albedo + EPS, out=color)
             if variances:
-                var = _mean_c(_variance_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2)
-        elif name == "specular":
-            raw = b["specular"].clamp_min(0.0)
-            color = specular_color(raw)
+                torch.mean(_rgb(b["diffuseVariance"]) / (albedo + EPS) ** 2, dim=1, keepdim=True, out=x[:, 3:4])
+        else:
+            raw = b["specular"].clamp_min_(0.0)
+            torch.log1p(raw, out=color)
             if variances:
-                var = _mean_c(_variance_rgb(b["specularVariance"]) / (1.0 + raw) ** 2)
+                torch.mean(_rgb(b["specularVariance"]) / (1.0 + raw) ** 2, dim=1, keepdim=True, out=x[:, 3:4])
+        _gradients_into(color, x[:, gx_at:gx_at + 3], x[:, gy_at:gy_at + 3])
+        if first is None:  # the shared channels, computed once
+            for i, t in enumerate((b["normal"], albedo, depth)):
+                c0 = 3 * i
+                _gradients_into(t, x[:, gx_at + 3 + c0:gx_at + 3 + c0 + t.shape[1]],
+                                x[:, gy_at + 3 + c0:gy_at + 3 + c0 + t.shape[1]])
+            if variances:
+                for c, k in zip((24, 25, 26), ("normalVariance", "albedoVariance", "depthVariance")):
+                    torch.mean(_rgb(b[k]), dim=1, keepdim=True, out=x[:, c:c + 1])
+                x[:, 26:27].div_(torch.as_tensor(depth_scale) ** 2)
+            first = x
         else:
-            raise ValueError(f"branch_features: unknown branch {name!r}; expected one of {BRANCHES}")
-        gx, gy = gradients(color)
-        if variances:
-            out[name] = torch.cat([color, var, gx, aux_gx, gy, aux_gy, var_n, var_a, var_d], dim=1)
-        else:
-            out[name] = torch.cat([color, gx, aux_gx, gy, aux_gy], dim=1)
+            x[:, gx_at + 3:gx_at + 10] = first[:, gx_at + 3:gx_at + 10]
+            x[:, gy_at + 3:] = first[:, gy_at + 3:]
+        out[name] = x
     return out
 
 
-def _variance_rgb(v: torch.Tensor) -> torch.Tensor:
-    v = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+def _gradients_into(x: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor) -> None:
+    """:func:`gradients` of ``x`` written into ``gx`` and ``gy`` (views of the same shape)."""
+    torch.sub(x[..., :, 1:], x[..., :, :-1], out=gx[..., :, :-1])
+    gx[..., :, -1] = 0.0
+    torch.sub(x[..., 1:, :], x[..., :-1, :], out=gy[..., :-1, :])
+    gy[..., -1, :] = 0.0
+
+
+def _rgb(v: torch.Tensor) -> torch.Tensor:
     return v.expand(-1, 3, -1, -1) if v.shape[1] == 1 else v
 
 

@@ -45,6 +45,7 @@ from ..features import frame_to_tensors
 from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
+from .heap import reuse_heap
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .rows import denoise_rows, supports_rows
 from .tiling import auto_tile, plan_tiles, tile_size
@@ -197,7 +198,7 @@ def denoise_result(
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
-    with torch.inference_mode():
+    with reuse_heap(dev.type == "cpu"), torch.inference_mode():  # freed tensors' pages reused, not re-faulted
         context = None
         tiles = list(plan_tiles(h, w, tile, halo, align))
         # one tile that is the whole frame: each branch's own summary is the frame's (no separate pass)

@@ -8,7 +8,9 @@
 * :func:`albedo_ratio`: the per-tap factor that turns a kernel applied to the
   colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``);
 * :func:`pool2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool and a 1×1 convolution
-  written for the CPU's memory traffic (what the U-Net does at full resolution).
+  written for the CPU's memory traffic (what the U-Net does at full resolution);
+* :func:`up_cat_conv3x3`: a U-Net decoder's first convolution of ``[nearest_up2(coarse), skip]``
+  without building either (a transposed convolution of the coarse input plus a convolution of the skip).
 """
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from torch import nn
 from ..inputs import get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "conv1x1", "Conv1x1"]
+           "kernel_prior_bias", "albedo_ratio", "pool2", "conv1x1", "Conv1x1",
+           "up_cat_conv3x3", "UpCatConv"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
@@ -127,3 +130,61 @@ class Conv1x1(nn.Conv2d):
 
     def forward(self, x):  # type: ignore[override]
         return conv1x1(x, self.weight, self.bias)
+
+
+#: for each tap k of a stride-2 transposed convolution's 4-tap kernel (padding 1), which taps of a 3-tap
+#: kernel applied after a nearest 2× upsampling it gathers: output row 2m reads input m (taps 1, 2) and
+#: m - 1 (tap 0); row 2m + 1 reads m (taps 0, 1) and m + 1 (tap 2)
+_UP_TAPS = ((0, 0, 1), (0, 1, 1), (1, 1, 0), (1, 0, 0))
+
+
+def up_cat_conv3x3(coarse: torch.Tensor, skip: torch.Tensor, weight: torch.Tensor,
+                   bias: torch.Tensor | None = None) -> torch.Tensor:
+    """``conv2d(cat([nearest_up2(coarse), skip]), weight, bias, padding=1)`` without the upsampling or the cat.
+
+    A 3×3 convolution (zero padding) of a nearest-upsampled map is a stride-2 transposed convolution of
+    the map itself with a 4×4 kernel whose taps are sums of the 3×3 taps (:data:`_UP_TAPS`): 4 rather than
+    9 multiply-adds per output pixel and channel, and neither the upsampled map nor the concatenation is
+    written. Same result to float rounding (``tests/test_unet.py``). Inference path of the U-Net's decoder.
+
+    Args:
+        coarse: ``(B, Cc, h, w)``.
+        skip: ``(B, Cs, 2h, 2w)``.
+        weight: ``(O, Cc + Cs, 3, 3)`` (the coarse input's channels first); bias ``(O,)``.
+
+    Returns:
+        ``(B, O, 2h, 2w)``, in ``skip``'s memory format.
+    """
+    cc = coarse.shape[1]
+    if weight.shape[-2:] != (3, 3) or weight.shape[1] != cc + skip.shape[1]:
+        raise ValueError(f"up_cat_conv3x3: weight {tuple(weight.shape)} is not a 3x3 kernel over "
+                         f"{cc} + {skip.shape[1]} input channels")
+    if skip.shape[-2:] != (2 * coarse.shape[-2], 2 * coarse.shape[-1]):
+        raise ValueError(f"up_cat_conv3x3: skip {tuple(skip.shape)} is not twice coarse {tuple(coarse.shape)}")
+    taps = torch.tensor(_UP_TAPS, dtype=weight.dtype, device=weight.device)
+    wt = torch.einsum("ky,lx,ocyx->cokl", taps, taps, weight[:, :cc])  # (Cc, O, 4, 4)
+    out = F.conv2d(skip, weight[:, cc:], bias, padding=1)
+    return out.add_(F.conv_transpose2d(coarse, wt.contiguous(), stride=2, padding=1))
+
+
+class UpCatConv(nn.Conv2d):
+    """A U-Net decoder's first 3×3 conv (padding 1) of ``[nearest_up2(coarse), skip]``, taking the pair
+    ``(coarse (B, Cc, h, w), skip (B, Cs, 2h, 2w))``: the same parameters and state-dict keys as an
+    ``nn.Conv2d`` on the concatenation. Without autograd it runs :func:`up_cat_conv3x3` (no upsampled
+    map or concatenation written, 4 rather than 9 multiply-adds per pixel for the coarse input); with
+    autograd, the plain upsample, concatenation and convolution."""
+
+    def forward(self, pair):  # type: ignore[override]
+        coarse, skip = pair
+        if torch.is_grad_enabled():
+            up = F.interpolate(coarse, scale_factor=2, mode="nearest")
+            return F.conv2d(torch.cat([up, skip], dim=1), self.weight, self.bias, padding=1)
+        return up_cat_conv3x3(coarse, skip, self.weight, self.bias)
+
+    def macs(self, pair, out) -> int:
+        """Multiply-adds of one call per image (for :func:`kpcn.models.cost.macs_per_pixel`): the path run."""
+        coarse, skip = pair
+        fine = out[0, 0].numel() * self.out_channels
+        if torch.is_grad_enabled():
+            return fine * self.in_channels * 9
+        return fine * (9 * skip.shape[1] + 4 * coarse.shape[1])

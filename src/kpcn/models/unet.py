@@ -13,7 +13,9 @@ Each branch of the input spec (diffuse and specular for the split specs, one
   frame is denoised in tiles, :meth:`UNetKPCN.frame_context` computes it once
   over the whole frame and every tile uses that value, so tiled equals untiled;
 * decoder: nearest-neighbour 2× upsampling, concatenation with the encoder
-  features of the same level, ``convs_per_level`` 3×3 convs + ReLU;
+  features of the same level, ``convs_per_level`` 3×3 convs + ReLU (at inference
+  the first conv is computed without building the upsampled map or the
+  concatenation: :class:`~kpcn.models.layers.UpCatConv`);
 * head: a 1×1 conv to ``kernel_size²`` bounded logits (``s·tanh(z/s)``), a
   softmax, and the per-pixel kernel applied to the noisy branch colour with
   replicate padding — the output is a convex combination of input pixels, so a
@@ -57,7 +59,7 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
-from .layers import INPUT_TRANSFORMS, Conv1x1, kernel_prior_bias, pool2, transform_input
+from .layers import INPUT_TRANSFORMS, Conv1x1, UpCatConv, kernel_prior_bias, pool2, transform_input
 from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
@@ -151,10 +153,10 @@ class UNetConfig:
         return sum((self.kernel_size // 2 + 2) * 2**level for level in range(self.kernel_scales))
 
 
-def _convs(c_in: int, c_out: int, n: int) -> nn.Sequential:
+def _convs(c_in: int, c_out: int, n: int, first=nn.Conv2d) -> nn.Sequential:
     mods: list[nn.Module] = []
     for i in range(n):
-        conv = nn.Conv2d(c_in if i == 0 else c_out, c_out, 3, padding=1)
+        conv = (first if i == 0 else nn.Conv2d)(c_in if i == 0 else c_out, c_out, 3, padding=1)
         nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
         nn.init.zeros_(conv.bias)
         mods += [conv, nn.ReLU(inplace=True)]
@@ -177,7 +179,7 @@ class UNetBranch(nn.Module):
         self.dec = nn.ModuleList()
         below = w[-1] + s
         for level in range(len(w) - 2, -1, -1):
-            self.dec.append(_convs(below + w[level], w[level], cfg.convs_per_level))
+            self.dec.append(_convs(below + w[level], w[level], cfg.convs_per_level, UpCatConv))
             below = w[level]
         k, n = cfg.kernel_size, cfg.kernel_scales
         # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
@@ -263,7 +265,7 @@ class UNetBranch(nn.Module):
                 h = h.contiguous(memory_format=torch.channels_last)  # the expanded summary made it NCHW
         decoded = {}
         for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
-            h = block(torch.cat([F.interpolate(h, scale_factor=2, mode="nearest"), skip], dim=1))
+            h = block((h, skip))  # its first conv (UpCatConv) upsamples h and concatenates the skip
             decoded[level] = h
         return h, decoded
 

@@ -81,7 +81,7 @@ class RowStream:
         c = branch.enc[0][0].in_channels
         self._kw = dict(device=device, dtype=dtype)
         # channels_last, the layout the network runs in: each band is transposed while it is in cache
-        self._pooled = torch.empty(1, c, hp // 2, wp // 2, **self._kw).contiguous(memory_format=torch.channels_last)
+        self._pooled = torch.empty(1, c, hp // 2, wp // 2, memory_format=torch.channels_last, **self._kw)
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, **self._kw)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
@@ -104,7 +104,11 @@ class RowStream:
         elif signals.keys() != self._full.keys():
             raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
         kind, g = self.cfg.input_transform, self.branch.guide
-        self._guide[..., r0:r0 + n, :] = g(transform_input(x, kind)).relu_()
+        # the guide's 1x1 conv written straight into its rows: (C_g, n * width) is a view of them
+        guide = self._guide[0, :, r0:r0 + n, :].view(-1, n * x.shape[-1])
+        torch.addmm(g.bias[:, None], g.weight.view(g.out_channels, -1), transform_input(x, kind)[0].view(x.shape[1], -1),
+                    out=guide)
+        guide.relu_()
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
