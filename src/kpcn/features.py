@@ -59,14 +59,20 @@ GRAD_Y = slice(14, 24)
 FEATURE_VAR = slice(24, 27)
 
 
-def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None) -> dict[str, torch.Tensor]:
+def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None, contiguous: bool = True
+                     ) -> dict[str, torch.Tensor]:
     """Layers of a frame as float32 ``(1, C, H, W)`` tensors (checks they are present); ``crop``: a
-    ``(rows, columns)`` pair of slices to take; ``device``: where to put them."""
+    ``(rows, columns)`` pair of slices to take; ``device``: where to put them. ``contiguous=False``: on the
+    CPU, views of the frame's ``(H, W, C)`` arrays (no copy; :func:`branch_features` copies them once)."""
     frame.require(layers)
     out = {}
     for n in layers:
         a = frame[n] if crop is None else frame[n][crop]
-        t = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].float()
+        if contiguous:
+            a = np.ascontiguousarray(a.transpose(2, 0, 1))
+            t = torch.from_numpy(a)[None].float()
+        else:
+            t = torch.from_numpy(a).permute(2, 0, 1)[None].float()
         out[n] = t if device is None else t.to(device, non_blocking=True)
     return out
 
@@ -229,7 +235,7 @@ def branch_features(
     if unknown:
         raise ValueError(f"branch_features: unknown branch {unknown[0]!r}; expected one of {BRANCHES}")
     # from here on every buffer is finite (its own copy), and every variance finite and >= 0
-    b = {k: torch.nan_to_num(buffers[k].float(), nan=0.0, posinf=0.0, neginf=0.0) for k in need}
+    b = {k: finite_copy(buffers[k]) for k in need}
     if variances:  # bound every variance by what its layer's mean allows, before any division
         clamped = {}
         for k in need:
@@ -280,6 +286,12 @@ def branch_features(
             x[:, gy_at + 3:] = first[:, gy_at + 3:]
         out[name] = x
     return out
+
+
+def finite_copy(t: torch.Tensor) -> torch.Tensor:
+    """``t`` as a new contiguous float32 tensor with NaN and ±Inf replaced by 0 (one pass, whatever ``t``'s strides)."""
+    out = torch.empty(t.shape, dtype=torch.float32, device=t.device)
+    return torch.nan_to_num(t.float(), nan=0.0, posinf=0.0, neginf=0.0, out=out)
 
 
 def _gradients_into(x: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .constants import EPS, OIDN_ALBEDO
-from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of, frame_to_tensors
+from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of, finite_copy, frame_to_tensors
 from .noise import REVISION as NOISE_REVISION, noise_precision
 
 __all__ = [
@@ -176,7 +176,7 @@ def finite_nonneg(color: torch.Tensor) -> torch.Tensor:
 
 
 def _clean(x: torch.Tensor) -> torch.Tensor:
-    return torch.nan_to_num(x.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    return finite_copy(x).clamp_min_(0.0)
 
 
 def split_reconstruct(outputs: Tensors, inputs: Tensors) -> torch.Tensor:
@@ -239,7 +239,7 @@ def _can_build(buffers, frame_value=None, branches=("color",), noise=False):
     albedo = _clean(buffers["albedo"])
     out = {"albedo": albedo}
     if "color" in branches:
-        normal = torch.nan_to_num(buffers["normal"].float(), nan=0.0, posinf=0.0, neginf=0.0)
+        normal = finite_copy(buffers["normal"])
         parts = [_clean(buffers["color"]), albedo, normal]
         if noise:
             if frame_value is None:  # a whole frame (training, or an untiled call): its own precision

@@ -66,7 +66,7 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
         r1 = min(r0 + band, hp)
         c0, c1 = min(r0, h - 1), min(r1 + spec.halo, h)  # padded rows >= h repeat row h - 1
         crop = (slice(c0, c1), slice(0, w))
-        inputs = spec.build(frame_to_tensors(frame, layers, crop, device), frame_value, branches)
+        inputs = spec.build(frame_to_tensors(frame, layers, crop, device, contiguous=False), frame_value, branches)
         if r0 < h:
             albedo[..., r0:min(r1, h), :] = inputs["albedo"][..., : min(r1, h) - r0, :]
         signals = {}

@@ -29,12 +29,12 @@ def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
     return w.div_(norm).contiguous() if norm is not None else w
 
 
-def _softmax_weights(z: torch.Tensor, s: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+def _softmax_weights(z: torch.Tensor, s: float, inplace: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Inference: unnormalised kernel weights ``exp(s tanh(z / s))`` and their sum over channels (the bounded
     logits lie in ``[-s, s]``, so for ``s <= 80`` exp cannot overflow and no maximum need be subtracted: equal
     to ``torch.softmax`` to float rounding); a caller may divide after applying them (3 channels, not ``k*k``).
-    For ``s > 80``: the normalised softmax and None."""
-    t = (z / s).tanh_().mul_(s)
+    For ``s > 80``: the normalised softmax and None. ``inplace``: ``z`` (a temporary) holds the weights."""
+    t = (z.div_(s) if inplace else z / s).tanh_().mul_(s)
     if s > 80:
         return torch.softmax(t, dim=1).contiguous(), None
     return t.exp_(), t.sum(dim=1, keepdim=True)

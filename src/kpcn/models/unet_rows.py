@@ -106,7 +106,7 @@ class RowStream:
         kind, g = self.cfg.input_transform, self.branch.guide
         # the guide's 1x1 conv written straight into its rows: (C_g, n * width) is a view of them
         guide = self._guide[0, :, r0:r0 + n, :].view(-1, n * x.shape[-1])
-        torch.addmm(g.bias[:, None], g.weight.view(g.out_channels, -1), transform_input(x, kind)[0].view(x.shape[1], -1),
+        torch.addmm(g.bias[:, None], g.weight.view(g.out_channels, -1), transform_input(x, kind)[0].reshape(x.shape[1], -1),
                     out=guide)
         guide.relu_()
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
@@ -162,8 +162,8 @@ class RowStream:
         z = F.interpolate(clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1), scale_factor=2, mode="bilinear",
                           align_corners=False)[..., 2:-2, :]
         z = z.add_(self.branch.head.guide_part(self._guide[..., e0:e1, :]))
-        weights = _softmax_weights(z[:, :kk], cfg.logit_scale)
         alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
+        weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         i0, n = r0 - e0, r1 - r0
         out = {}
         for key, full in self._full.items():
