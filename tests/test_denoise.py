@@ -421,15 +421,18 @@ def touch_and_free(mb):
 
 print(heap_tuning_available())
 base = rss_mb()
-touch_and_free(256)
-print(rss_mb() - base)          # no block: glibc maps and unmaps a block this large
+touch_and_free(48)
+print(rss_mb() - base)          # no block: glibc maps and unmaps a block above 32 MiB
 with reuse_heap():
     with reuse_heap():
-        touch_and_free(256)
+        touch_and_free(48)
     print(rss_mb() - base)      # inner exit: still held for reuse
     for _ in range(4):          # reused (an aligned request may not fit the one freed block: at most two)
-        touch_and_free(256)
+        touch_and_free(48)
     print(rss_mb() - base)
+    held = rss_mb()
+    touch_and_free(160)         # above the threshold: mapped and unmapped as before
+    print(rss_mb() - held)
 print(rss_mb() - base)          # outer exit: given back
 """
 
@@ -438,8 +441,9 @@ def test_reuse_heap_keeps_freed_memory_during_a_call_and_gives_it_back_after():
     # a fresh interpreter: the heap settings are per process
     out = subprocess.run([sys.executable, "-c", _HEAP_SCRIPT], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "True", "this test needs glibc (the heap tuning is a no-op elsewhere)"
-    plain, inner, reused, after = map(float, out[1:])
-    assert plain < 64, f"a freed 256 MB block stayed resident without the tuning: +{plain:.0f} MB"
-    assert inner > 200, f"a freed block was not kept for reuse inside the block: +{inner:.0f} MB"
-    assert reused < 2 * 256 + 64, f"freed blocks not reused: +{reused:.0f} MB after five 256 MB blocks"
-    assert after < 64, f"memory not given back when the outermost block ended: +{after:.0f} MB"
+    plain, inner, reused, big, after = map(float, out[1:])
+    assert plain < 16, f"a freed 48 MB block stayed resident without the tuning: +{plain:.0f} MB"
+    assert inner > 40, f"a freed block was not kept for reuse inside the block: +{inner:.0f} MB"
+    assert reused < 2 * 48 + 16, f"freed blocks not reused: +{reused:.0f} MB after five 48 MB blocks"
+    assert big < 16, f"a freed 160 MB block (above the threshold) stayed resident: +{big:.0f} MB"
+    assert after < 16, f"memory not given back when the outermost block ended: +{after:.0f} MB"
