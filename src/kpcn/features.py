@@ -79,10 +79,8 @@ def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None, 
 
 def gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Forward differences of ``(B, C, H, W)`` in x and y, zero on the last column / row."""
-    gx = torch.zeros_like(x)
-    gy = torch.zeros_like(x)
-    gx[..., :, :-1] = x[..., :, 1:] - x[..., :, :-1]
-    gy[..., :-1, :] = x[..., 1:, :] - x[..., :-1, :]
+    gx, gy = torch.empty_like(x), torch.empty_like(x)
+    _gradients_into(x, gx, gy)
     return gx, gy
 
 
@@ -277,9 +275,10 @@ def branch_features(
                 _gradients_into(t, x[:, gx_at + 3 + c0:gx_at + 3 + c0 + t.shape[1]],
                                 x[:, gy_at + 3 + c0:gy_at + 3 + c0 + t.shape[1]])
             if variances:
-                for c, k in zip((24, 25, 26), ("normalVariance", "albedoVariance", "depthVariance")):
+                c0 = FEATURE_VAR.start
+                for c, k in enumerate(("normalVariance", "albedoVariance", "depthVariance"), c0):
                     torch.mean(_rgb(b[k]), dim=1, keepdim=True, out=x[:, c:c + 1])
-                x[:, 26:27].div_(torch.as_tensor(depth_scale) ** 2)
+                x[:, c0 + 2:c0 + 3].div_(torch.as_tensor(depth_scale) ** 2)
             first = x
         else:
             x[:, gx_at + 3:gx_at + 10] = first[:, gx_at + 3:gx_at + 10]

@@ -145,7 +145,7 @@ def up_cat_conv3x3(coarse: torch.Tensor, skip: torch.Tensor, weight: torch.Tenso
     A 3×3 convolution (zero padding) of a nearest-upsampled map is a stride-2 transposed convolution of
     the map itself with a 4×4 kernel whose taps are sums of the 3×3 taps (:data:`_UP_TAPS`): 4 rather than
     9 multiply-adds per output pixel and channel, and neither the upsampled map nor the concatenation is
-    written. Same result to float rounding (``tests/test_unet.py``). Inference path of the U-Net's decoder.
+    written. Same result to float rounding (``tests/test_models.py``). Inference path of the U-Net's decoder.
 
     Args:
         coarse: ``(B, Cc, h, w)``.

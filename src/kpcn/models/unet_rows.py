@@ -104,11 +104,7 @@ class RowStream:
         elif signals.keys() != self._full.keys():
             raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
         kind, g = self.cfg.input_transform, self.branch.guide
-        # the guide's 1x1 conv written straight into its rows: (C_g, n * width) is a view of them
-        guide = self._guide[0, :, r0:r0 + n, :].view(-1, n * x.shape[-1])
-        torch.addmm(g.bias[:, None], g.weight.view(g.out_channels, -1), transform_input(x, kind)[0].reshape(x.shape[1], -1),
-                    out=guide)
-        guide.relu_()
+        self._guide[..., r0:r0 + n, :] = g(transform_input(x, kind)).relu_()
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
