@@ -341,3 +341,23 @@ def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
     with pytest.raises(ConfigError, match="can only grow"):
         train(ucfg("c", [8, 12, 12], init=str(src), init_extend=True), progress=False)
     assert not (tmp_path / "c").exists()
+
+
+def test_bfloat16_training_runs_and_is_refused_where_the_model_cannot(tiny_dataset, tmp_path):
+    """``train.precision: bfloat16``: a U-Net trains (finite losses, float32 weights written); KPCN, whose
+    layers only compute in float32, is refused before anything is written; an unknown name is a ConfigError."""
+    from kpcn.config import ConfigError
+    from kpcn.train_config import TrainConfig
+
+    with pytest.raises(ConfigError, match="train.precision: expected float32 or bfloat16, got 'half'"):
+        TrainConfig(precision="half")
+    with pytest.raises(ConfigError, match="train.precision: .*cannot compute in 'bfloat16'"):
+        train(tiny_cfg(tiny_dataset, tmp_path, name="k", stage1_steps=2, stage2_steps=0, precision="bfloat16"),
+              progress=False)
+    assert not (tmp_path / "k").exists()
+    cfg = tiny_cfg(tiny_dataset, tmp_path, name="u", stage1_steps=0, stage2_steps=3, precision="bfloat16")
+    cfg.model = {"name": "unet_kpcn", "widths": [8, 8, 12], "stem": "half", "kernel_scales": 2}
+    res = train(cfg, progress=False)
+    assert len(res["losses"]) == 3 and all(np.isfinite(res["losses"]))
+    weights = read_weights(tmp_path / "u" / "model.safetensors")[1]
+    assert all(v.dtype == torch.float32 for v in weights.values())

@@ -129,6 +129,10 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     ckpt_dir = run / "checkpoints"
     latest = ckpt_dir / "latest.pt"
     model = build_model(cfg).to(d.device)
+    try:
+        model.set_compute_dtype(cfg.train.precision)
+    except ValueError as exc:
+        raise ConfigError(f"train.precision: {exc}") from None
     spec = model.input_spec
 
     # 1. the run folder, the checkpoint and the weights to start from (every rank reads; nothing is written)

@@ -91,7 +91,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int,
-                     rows: bool = True) -> dict:
+                     rows: bool = True, precision: str = "auto") -> dict:
     import gc
 
     import numpy as np
@@ -129,11 +129,12 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         extra["macs_per_px"] = macs_per_pixel(model)
 
         def run():
-            r = denoise_result(frame, model, tile=tile, device="cpu", rows=rows)
-            extra.update(stats=r.stats.summary(), halo=r.stats.halo, tiles=r.stats.tiles)
+            r = denoise_result(frame, model, tile=tile, device="cpu", rows=rows, precision=precision)
+            extra.update(stats=r.stats.summary(), halo=r.stats.halo, tiles=r.stats.tiles, precision=r.stats.precision)
             return r.color
 
-        denoise_result(frame.crop(0, min(h, 64), 0, min(w, 64)), model, tile=tile, device="cpu", rows=rows)
+        denoise_result(frame.crop(0, min(h, 64), 0, min(w, 64)), model, tile=tile, device="cpu", rows=rows,
+                       precision=precision)
     gc.collect()
     rss_before_kb = _proc_status_kb("VmRSS")
     reset_ok = _reset_peak_rss()
@@ -192,8 +193,10 @@ def _oidn_set_threads(n: int) -> str:
         return f"default (could not set: {exc})"
 
 
-def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout, rows=True) -> dict:
-    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats, rows), timeout)
+def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout, rows=True,
+                        precision="auto") -> dict:
+    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats, rows, precision),
+                        timeout)
 
 
 def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
@@ -218,6 +221,9 @@ class DenoiseBenchConfig:
     oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
     rows: bool = field(default=True, metadata={
         "help": "run whole frames at once, not a band of rows at a time (models with row streams; the A/B baseline)"})
+    precisions: list[str] = field(default_factory=lambda: ["auto"], metadata={
+        "help": "kpcn's precision(s): auto, float32, bfloat16; each model runs at each (rows labelled model@precision "
+                "when more than one)"})
     tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default: auto, the whole frame up to 1920x1080; --skip: 64)"})
     scene: str = field(default="random:3", metadata={"help": "scene to render"})
     spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
@@ -265,6 +271,13 @@ def bench_denoise(argv: list[str]) -> int:
     args.sizes = args.sizes or [(256, 256), (1024, 1024), (1920, 1080)]
     tile = args.tile if args.tile_given else "auto"
     specs = {name: _denoise_model_spec(name) for name in args.models}
+    bad = [p for p in args.precisions if p not in ("auto", "float32", "bfloat16")]
+    if bad or not args.precisions:
+        print(f"python -m kpcn.bench denoise: precisions: expected auto, float32 or bfloat16, got {bad or '[]'}",
+              file=sys.stderr)
+        return 2
+    many = len(args.precisions) > 1
+    labels = [(f"{name}@{p}" if many else name, name, p) for name in args.models for p in args.precisions]
 
     tmp = None
     frames_dir = args.frames_dir
@@ -280,12 +293,14 @@ def bench_denoise(argv: list[str]) -> int:
                 print(f"rendering {args.scene} {w}x{h} at {args.spp} spp ...", file=sys.stderr, flush=True)
                 secs = _render_bench_frame(args.scene, (w, h), args.spp, args.seed, path)
                 print(f"  rendered in {secs:.1f} s", file=sys.stderr, flush=True)
-            jobs = [("kpcn", name) for name in args.models] + ([] if args.no_oidn else [("oidn", "oidn")])
-            for impl, name in jobs:
-                model_name, kw = (specs[name][0], specs[name][1]) if impl == "kpcn" else ("", {})
+            jobs = [("kpcn", label, name, p) for label, name, p in labels] + \
+                ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto")])
+            for impl, name, model, precision in jobs:
+                model_name, kw = (specs[model][0], specs[model][1]) if impl == "kpcn" else ("", {})
                 print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
                 t0 = time.perf_counter()
-                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout, args.rows)
+                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout, args.rows,
+                                        precision)
                 r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
                 print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
                 results.append(r)
@@ -303,7 +318,7 @@ def bench_denoise(argv: list[str]) -> int:
           "time = median wall seconds (frame already in memory, model built); cpu = process CPU seconds "
           "(less sensitive to other load on the machine, but it counts OpenMP spin-waiting)")
     print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
-    mw = max([8] + [len(n) for n in args.models])
+    mw = max([8] + [len(n) for n, _, _ in labels])
     header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  {'kMAC/px':>8}  notes"
     print(header)
     print("-" * len(header))
@@ -320,7 +335,7 @@ def bench_denoise(argv: list[str]) -> int:
         by = {(r["size"], r["model"]): r for r in results}
         for w, h in args.sizes:
             o = by.get((f"{w}x{h}", "oidn"), {})
-            for name in args.models:
+            for name, _, _ in labels:
                 k = by.get((f"{w}x{h}", name), {})
                 print(f"{f'{w}x{h}':>10}  {name:<{mw}}  {_ratio(k, o, 'median_s'):>8}  {_ratio(k, o, 'mem_mb'):>8}")
     if args.json:

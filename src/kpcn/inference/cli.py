@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "else tiles of max(512, 4 x the model's halo) (default auto)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto)")
     p.add_argument("--half", action="store_true", help="float16 autocast (CUDA only)")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
+                   help="dtype of the model's hidden layers: auto = bfloat16 on a CPU with native bfloat16 "
+                        "(AMX, AVX-512 BF16) for models that can, else float32 (default auto)")
     p.add_argument("--no-skip", action="store_true", help="run the network on every tile and branch")
     p.add_argument("--layers", nargs="+", default=None, metavar="NAME",
                    help="also denoise these light groups (NAME.diffuse + NAME.specular) or other 3-channel layers "
@@ -133,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 res = denoise_result(inp, None if args.model is None else net, dst, tile=args.tile, device=args.device, half=args.half,
-                                     skip=not args.no_skip, layers=args.layers, aov_branch=args.aov_branch)
+                                     skip=not args.no_skip, layers=args.layers, aov_branch=args.aov_branch,
+                                     precision=args.precision)
             for wmsg in caught:
                 print(f"warning: {wmsg.message}", file=sys.stderr)
         except (MissingLayerError, ExrError, FileNotFoundError, ValueError, OSError, RuntimeError) as exc:

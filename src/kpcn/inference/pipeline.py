@@ -46,6 +46,7 @@ from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .paths import check_not_input, check_output_path
 from .heap import reuse_heap
+from .precision import compute_dtype, resolve_precision
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .rows import denoise_rows, supports_rows
 from .tiling import auto_tile, plan_tiles, tile_size
@@ -142,6 +143,7 @@ def denoise_result(
     layers=None,
     aov_branch: str | None = None,
     rows: bool = True,
+    precision: str = "auto",
 ) -> DenoiseResult:
     """Like :func:`denoise`, but returns a :class:`DenoiseResult` (colour, ``layers`` and :class:`DenoiseStats`)."""
     if tile != "auto" and tile is not None and (isinstance(tile, (bool, str)) or int(tile) != tile):
@@ -160,6 +162,7 @@ def denoise_result(
             warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=2)
         exr_path_or_frame = frame
     net = load_model(model, dev, trust_pickle=trust_pickle)
+    dtype = resolve_precision(precision, net, dev)
     spec = net.input_spec
     frame, t_read = _as_frame(exr_path_or_frame, spec.layers)
     frame = spec.select(frame)  # e.g. OIDN's albedo for a colour + albedo + normal model, where the file has it
@@ -198,7 +201,9 @@ def denoise_result(
     var_in = _color_variance(frame) if skip and "depth" in frame else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
-    with reuse_heap(dev.type == "cpu"), torch.inference_mode():  # freed tensors' pages reused, not re-faulted
+    stats.precision = str(dtype).removeprefix("torch.")
+    # freed tensors' pages reused, not re-faulted; the hidden layers in the resolved precision
+    with reuse_heap(dev.type == "cpu"), torch.inference_mode(), compute_dtype(net, dtype):
         context = None
         tiles = list(plan_tiles(h, w, tile, halo, align))
         # one tile that is the whole frame: each branch's own summary is the frame's (no separate pass)
@@ -296,6 +301,7 @@ def denoise(
     layers=None,
     aov_branch: str | None = None,
     rows: bool = True,
+    precision: str = "auto",
 ):
     """Denoise one render and return its colour ``(H, W, 3)`` float32 (finite, >= 0).
 
@@ -333,6 +339,10 @@ def denoise(
         rows: on the CPU, a frame of at least 600x600 pixels denoised whole by a model with row streams
             (the ``stem: half`` U-Net, the default) is run a band of rows at a time (:mod:`kpcn.inference.rows`: the same result to
             float rounding, in less time and memory); ``False``: the whole frame at once.
+        precision: the dtype of the model's hidden layers: ``"float32"``, ``"bfloat16"``, or ``"auto"``
+            (default): bfloat16 on a CPU with native bfloat16 arithmetic (AMX, AVX-512 BF16) for a model that
+            can (the U-Net), float32 otherwise; kernels and their application are float32 in either
+            (:mod:`kpcn.inference.precision`).
 
     Raises:
         MissingLayerError: the input lacks layers the model needs (names them and those found).
@@ -341,5 +351,6 @@ def denoise(
         IsADirectoryError / NotADirectoryError: ``out_path`` is a folder, or under a file; raised first too.
     """
     res = denoise_result(exr_path_or_frame, model, out_path, tile=tile, device=device, half=half, skip=skip,
-                         trust_pickle=trust_pickle, layers=layers, aov_branch=aov_branch, rows=rows)
+                         trust_pickle=trust_pickle, layers=layers, aov_branch=aov_branch, rows=rows,
+                         precision=precision)
     return {"color": res.color, **res.layers} if layers else res.color

@@ -30,6 +30,8 @@ class DenoiseStats:
         nonfinite: NaN/Inf values replaced per layer (by the reader or here).
         noise_precision: the frame's estimated noise precision (:mod:`kpcn.noise`) for models whose
             input spec reads it; None otherwise.
+        precision: the dtype the model's hidden layers ran in (``float32`` or ``bfloat16``;
+            :mod:`kpcn.inference.precision`).
         row_bands: the whole frame was run a band of rows at a time (:mod:`kpcn.inference.rows`), in
             this many bands; 0: it was not.
     """
@@ -46,6 +48,7 @@ class DenoiseStats:
     tiles_passed_through: int = 0
     tiles_zero: int = 0
     tiles_fp32_fallback: int = 0
+    precision: str = "float32"
     branches_skipped: tuple[str, ...] = ()
     branch_tiles_run: dict[str, int] = field(default_factory=dict)
     branch_tiles_skipped: dict[str, int] = field(default_factory=dict)
@@ -59,7 +62,7 @@ class DenoiseStats:
 
     def summary(self) -> str:
         h, w = self.size
-        parts = [f"{w}x{h}", f"{self.seconds:.2f} s", f"tiles run {self.tiles_run}/{self.tiles}"]
+        parts = [f"{w}x{h}", f"{self.seconds:.2f} s", self.precision, f"tiles run {self.tiles_run}/{self.tiles}"]
         if self.row_bands:
             parts.append(f"in {self.row_bands} row bands")
         if self.tiles_passed_through:

@@ -62,10 +62,37 @@ class DenoiserModel(nn.Module):
     convex_kernels: bool = False
     #: a whole frame can be run a band of rows at a time (:meth:`row_stream`, :mod:`kpcn.inference.rows`)
     streams_rows: bool = False
+    #: dtypes the model's hidden layers can run in (:meth:`set_compute_dtype`); kernels, their softmax and
+    #: their application stay float32 whatever the compute dtype
+    compute_dtypes: tuple[torch.dtype, ...] = (torch.float32,)
 
     def __init__(self, config: Any) -> None:
         super().__init__()
         self.config = config
+        self._compute_dtype = torch.float32
+
+    @property
+    def compute_dtype(self) -> torch.dtype:
+        """The dtype the hidden layers run in (float32 unless :meth:`set_compute_dtype` said otherwise)."""
+        return self._compute_dtype
+
+    def set_compute_dtype(self, dtype: torch.dtype | str) -> "DenoiserModel":
+        """Run the hidden layers in ``dtype`` (``torch.bfloat16`` or ``"bfloat16"``: autocast around the
+        convolution stack, weights kept float32; a run-time choice, not saved with the weights).
+
+        Raises:
+            ValueError: the model cannot run in ``dtype`` (:attr:`compute_dtypes` lists what it can).
+        """
+        dt = getattr(torch, dtype) if isinstance(dtype, str) and hasattr(torch, dtype) else dtype
+        if dt not in self.compute_dtypes:
+            names = ", ".join(str(d).removeprefix("torch.") for d in self.compute_dtypes)
+            raise ValueError(f"{self.name or type(self).__name__}: cannot compute in {dtype!r}; it can in: {names}")
+        self._compute_dtype = dt
+        self._on_compute_dtype(dt)
+        return self
+
+    def _on_compute_dtype(self, dtype: torch.dtype) -> None:
+        """Hook: a subclass passes the compute dtype to its parts."""
 
     # ------------------------------------------------------------------ declarations
     @property

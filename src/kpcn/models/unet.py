@@ -49,6 +49,7 @@ pooling block and the bilinear upsampling, summed over the kernel levels).
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
 import torch
@@ -191,6 +192,14 @@ class UNetBranch(nn.Module):
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
+        #: the conv stack's dtype (None: float32); see :meth:`UNetKPCN.set_compute_dtype`
+        self.compute_dtype: torch.dtype | None = None
+
+    def _lowp(self, t: torch.Tensor):
+        """Autocast to :attr:`compute_dtype` around the encoder and decoder convs (a no-op in float32)."""
+        if self.compute_dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(t.device.type, dtype=self.compute_dtype)
 
     def channel_groups(self) -> dict[str, tuple[tuple[int, ...] | None, tuple[int, ...]]]:
         """:meth:`DenoiserModel.channel_groups` of this branch (names relative to it)."""
@@ -247,32 +256,39 @@ class UNetBranch(nn.Module):
         if not torch.is_grad_enabled():
             h = h.contiguous(memory_format=torch.channels_last)
         feats = []
-        for level, block in enumerate(self.enc):
-            if level:
-                h = pool2(h)
-            h = block(h)
-            feats.append(h)
+        with self._lowp(h):
+            for level, block in enumerate(self.enc):
+                if level:
+                    h = pool2(h)
+                h = block(h)
+                feats.append(h)
         return feats
 
     def decode(self, feats: list[torch.Tensor], summary: torch.Tensor | None = None):
-        """The global summary and the decoder: ``(finest decoder level, {level: decoder output})``."""
+        """The global summary and the decoder: ``(finest decoder level, {level: decoder output})``, float32
+        (whatever :attr:`compute_dtype` the convs ran in)."""
         h = feats[-1]
         if self.summary is not None:
             if summary is None:
                 summary = self.summarize(h)
-            h = torch.cat([h, summary.expand(-1, -1, h.shape[-2], h.shape[-1])], dim=1)
+            h = torch.cat([h, summary.to(h.dtype).expand(-1, -1, h.shape[-2], h.shape[-1])], dim=1)
             if feats[-1].is_contiguous(memory_format=torch.channels_last) and not feats[-1].is_contiguous():
                 h = h.contiguous(memory_format=torch.channels_last)  # the expanded summary made it NCHW
         decoded = {}
-        for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
-            h = block((h, skip))  # its first conv (UpCatConv) upsamples h and concatenates the skip
-            decoded[level] = h
+        with self._lowp(h):
+            for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
+                h = block((h, skip))  # its first conv (UpCatConv) upsamples h and concatenates the skip
+                decoded[level] = h
+        if h.dtype != torch.float32:  # the heads, softmax and kernels run in float32
+            decoded = {level: d.float() for level, d in decoded.items()}
+            h = decoded[0] if decoded else h.float()
         return h, decoded
 
     def summarize(self, bottleneck: torch.Tensor) -> torch.Tensor | None:
         """The global summary ``(B, summary_channels, 1, 1)`` of a bottleneck (None without one)."""
         if self.summary is None:
             return None
+        bottleneck = bottleneck.float()  # statistics in float32 whatever the compute dtype
         mean = bottleneck.mean(dim=(2, 3), keepdim=True)
         std = torch.sqrt(bottleneck.var(dim=(2, 3), keepdim=True, unbiased=False) + 1e-8)
         return self.summary(torch.cat([mean, std], dim=1))
@@ -310,12 +326,19 @@ class UNetKPCN(DenoiserModel):
 
     zero_preserving = True
     kernel_padding = "replicate"  # every level's kernels, and the padding to the alignment
+    #: the encoder and decoder convs can run in bfloat16 (autocast; CPUs with AMX or AVX-512 BF16 run
+    #: them 3-5x faster than float32): heads, softmax and kernels stay float32
+    compute_dtypes = (torch.float32, torch.bfloat16)
 
     def __init__(self, config: UNetConfig) -> None:
         super().__init__(config)
         self.uses_frame_context = config.summary_channels > 0
         for b in self.branches:
             self.add_module(b, UNetBranch(config))
+
+    def _on_compute_dtype(self, dtype: torch.dtype) -> None:
+        for b in self.branches:
+            getattr(self, b).compute_dtype = None if dtype == torch.float32 else dtype
 
     @property
     def receptive_radius(self) -> int:
