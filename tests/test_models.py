@@ -333,3 +333,26 @@ def test_up_cat_conv_equals_upsample_concatenate_convolve():
         up_cat_conv3x3(torch.zeros(1, 2, 3, 3), torch.zeros(1, 1, 5, 6), torch.zeros(1, 3, 3, 3))
     with pytest.raises(ValueError, match="3x3 kernel over 2 \\+ 1"):
         up_cat_conv3x3(torch.zeros(1, 2, 3, 3), torch.zeros(1, 1, 6, 6), torch.zeros(1, 4, 3, 3))
+
+
+def test_relu_on_bfloat16_is_the_relu_bit_for_bit():
+    """kpcn.models.layers.relu_ clamps a bfloat16 tensor through its int16 view: the same bits as relu, but
+    for -0, which becomes +0 (relu keeps -0; the two are equal values)."""
+    from kpcn.models.layers import ReLU, relu_
+
+    g = torch.Generator().manual_seed(0)
+    x = (torch.randn(2, 7, 9, 11, generator=g) * torch.logspace(-30, 30, 11)).to(torch.bfloat16)
+    x[0, 0, 0, :4] = torch.tensor([-0.0, 0.0, -1e-40, float("inf")], dtype=torch.bfloat16)
+    x[0, 0, 1, :2] = torch.tensor([float("-inf"), -torch.finfo(torch.bfloat16).max], dtype=torch.bfloat16)
+    want = torch.relu(x)
+    want[want == 0] = 0.0  # +0 where relu kept -0
+    for t in (x.clone(), x.clone().contiguous(memory_format=torch.channels_last), x.clone()[..., ::2]):
+        w = want if t.shape == want.shape else want[..., ::2]
+        with torch.no_grad():
+            got = relu_(t)
+        assert got.data_ptr() == t.data_ptr() and torch.equal(got.view(torch.int16), w.view(torch.int16))
+    assert (x < 0).any() and (want == 0).sum() > (x == 0).sum()  # the case has negatives to clamp
+    # with autograd, the plain ReLU (and its gradient)
+    y = x.float().requires_grad_()
+    ReLU()(y * 1).sum().backward()
+    assert torch.equal(y.grad, (x.float() > 0).float())

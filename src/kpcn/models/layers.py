@@ -9,6 +9,7 @@
   colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``);
 * :func:`pool2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool and a 1×1 convolution
   written for the CPU's memory traffic (what the U-Net does at full resolution);
+* :func:`relu_` (:class:`ReLU`): an in-place ReLU that is fast on bfloat16 tensors too;
 * :func:`up_cat_conv3x3`: a U-Net decoder's first convolution of ``[nearest_up2(coarse), skip]``
   without building either (a transposed convolution of the coarse input plus a convolution of the skip).
 """
@@ -22,7 +23,7 @@ from ..inputs import get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
            "kernel_prior_bias", "albedo_ratio", "pool2", "conv1x1", "Conv1x1",
-           "up_cat_conv3x3", "UpCatConv"]
+           "up_cat_conv3x3", "UpCatConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
@@ -188,3 +189,30 @@ class UpCatConv(nn.Conv2d):
         if torch.is_grad_enabled():
             return fine * self.in_channels * 9
         return fine * (9 * skip.shape[1] + 4 * coarse.shape[1])
+
+
+def relu_(x: torch.Tensor) -> torch.Tensor:
+    """``x.relu_()``; a bfloat16 ``x`` that needs no gradient is clamped through its ``int16`` view instead.
+
+    A bfloat16 value is negative exactly when its sign bit, the int16 sign bit, is set, so clamping the
+    int16 view at 0 maps every negative value to +0 and leaves the rest: the ReLU, bit for bit (but -0, which
+    becomes +0: an equal value), and 4-8× faster on the CPU than PyTorch's bfloat16 clamp, which converts each value to float32 and back
+    (``tests/test_models.py``). (A NaN with its sign bit set becomes 0, where ``relu_`` keeps it; the
+    network's inputs are finite.)
+    """
+    if x.dtype == torch.bfloat16 and not (torch.is_grad_enabled() and x.requires_grad):
+        x.view(torch.int16).clamp_min_(0)
+        return x
+    return x.relu_()
+
+
+class ReLU(nn.ReLU):
+    """An in-place ``nn.ReLU`` computed by :func:`relu_` (no parameters: a drop-in for ``nn.ReLU(inplace=True)``)."""
+
+    def __init__(self) -> None:
+        super().__init__(inplace=True)
+
+    def forward(self, x):  # type: ignore[override]
+        if torch.is_grad_enabled() and x.requires_grad:
+            return F.relu(x, inplace=True)
+        return relu_(x)

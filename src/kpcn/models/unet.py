@@ -60,7 +60,7 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
-from .layers import INPUT_TRANSFORMS, Conv1x1, UpCatConv, kernel_prior_bias, pool2, transform_input
+from .layers import INPUT_TRANSFORMS, Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, transform_input
 from .registry import register_model, register_weights
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
@@ -160,7 +160,7 @@ def _convs(c_in: int, c_out: int, n: int, first=nn.Conv2d) -> nn.Sequential:
         conv = (first if i == 0 else nn.Conv2d)(c_in if i == 0 else c_out, c_out, 3, padding=1)
         nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
         nn.init.zeros_(conv.bias)
-        mods += [conv, nn.ReLU(inplace=True)]
+        mods += [conv, ReLU()]
     return nn.Sequential(*mods)
 
 
