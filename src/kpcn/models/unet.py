@@ -265,8 +265,8 @@ class UNetBranch(nn.Module):
         return feats
 
     def decode(self, feats: list[torch.Tensor], summary: torch.Tensor | None = None):
-        """The global summary and the decoder: ``(finest decoder level, {level: decoder output})``, float32
-        (whatever :attr:`compute_dtype` the convs ran in)."""
+        """The global summary and the decoder: ``(finest decoder level, {level: decoder output})``: float32
+        with autograd, else in :attr:`compute_dtype` (the heads' :func:`~kpcn.models.layers.conv1x1` takes either)."""
         h = feats[-1]
         if self.summary is not None:
             if summary is None:
@@ -279,7 +279,8 @@ class UNetBranch(nn.Module):
             for level, block, skip in zip(range(len(feats) - 2, -1, -1), self.dec, reversed(feats[:-1])):
                 h = block((h, skip))  # its first conv (UpCatConv) upsamples h and concatenates the skip
                 decoded[level] = h
-        if h.dtype != torch.float32:  # the heads, softmax and kernels run in float32
+        if h.dtype != torch.float32 and torch.is_grad_enabled():  # the heads, softmax and kernels run in float32
+            # (without autograd the heads read the reduced-precision maps directly: kpcn.models.layers.conv1x1)
             decoded = {level: d.float() for level, d in decoded.items()}
             h = decoded[0] if decoded else h.float()
         return h, decoded
