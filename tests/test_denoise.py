@@ -447,3 +447,21 @@ def test_reuse_heap_keeps_freed_memory_during_a_call_and_gives_it_back_after():
     assert reused < 2 * 48 + 16, f"freed blocks not reused: +{reused:.0f} MB after five 48 MB blocks"
     assert big < 16, f"a freed 160 MB block (above the threshold) stayed resident: +{big:.0f} MB"
     assert after < 16, f"memory not given back when the outermost block ended: +{after:.0f} MB"
+
+
+def test_bench_train_and_denoise_compare_precisions(capsys):
+    """``--precisions float32 bfloat16``: one row per config and dtype, in one run; a dtype the model lacks or
+    an unknown name is refused."""
+    from kpcn.bench import SUBCOMMANDS
+
+    rc = SUBCOMMANDS["train"](["--configs", "configs/small_unet.yaml", "--precisions", "float32", "bfloat16",
+                               "--batch", "2", "--patch", "16", "--steps", "1", "--warmup", "0"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "configs/small_unet.yaml@float32" in out and "configs/small_unet.yaml@bfloat16" in out
+    assert SUBCOMMANDS["train"](["--configs", "configs/small_unet.yaml", "--precisions", "half"]) == 2
+    with pytest.raises(ValueError, match="cannot compute in 'bfloat16'"):
+        SUBCOMMANDS["train"](["--configs", "configs/small.yaml", "--precisions", "bfloat16", "--steps", "1",
+                              "--warmup", "0", "--batch", "1", "--patch", "16"])
+    capsys.readouterr()
+    assert SUBCOMMANDS["denoise"](["--precisions", "fp16", "--sizes", "24", "--no-oidn"]) == 2
+    assert "precisions: expected auto, float32 or bfloat16" in capsys.readouterr().err

@@ -3,7 +3,8 @@
 Times full training steps (forward of every branch, L1 loss on every branch
 target, backward, Adam step) on batches of ``patch``×``patch`` patches for each
 config file, after ``--warmup`` steps, and prints patches/s and the ratio to the
-first config, all in one run. Step time does not depend on pixel values, so the
+first config, all in one run (``--precisions float32 bfloat16``: each config in both compute dtypes,
+``train.precision``). Step time does not depend on pixel values, so the
 batches are random tensors of the shapes the model's input spec builds.
 """
 from __future__ import annotations
@@ -28,6 +29,9 @@ class TrainBenchConfig:
     steps: int = field(default=3, metadata={"help": "timed steps (median)"})
     warmup: int = field(default=1, metadata={"help": "untimed steps first"})
     threads: int | None = field(default=None, metadata={"help": "torch threads (default: torch's)"})
+    precisions: list[str] = field(default_factory=lambda: ["config"], metadata={
+        "help": "compute dtype(s) of the hidden layers: config (each config's train.precision), float32, bfloat16; "
+                "each config runs at each (rows labelled config@precision when more than one)"})
 
 
 def bench_train(argv: list[str]) -> int:
@@ -45,12 +49,21 @@ def bench_train(argv: list[str]) -> int:
         torch.set_num_threads(args.threads)
     b, s = args.batch, args.patch
     print(f"training throughput: batch {b} of {s}x{s}, {torch.get_num_threads()} threads, median of {args.steps} steps")
-    print(f"{'config':<28} {'inputs':<20} {'params':>9} {'kMAC/px':>8} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
+    bad = [p for p in args.precisions if p not in ("config", "float32", "bfloat16")]
+    if bad or not args.precisions:
+        print(f"python -m kpcn.bench train: precisions: expected config, float32 or bfloat16, got {bad or '[]'}")
+        return 2
+    runs = [(path, p) for path in args.configs for p in args.precisions]
+    w = max([28] + [len(f"{path}@{p}") + 1 for path, p in runs])
+    print(f"{'config':<{w}} {'inputs':<20} {'params':>9} {'kMAC/px':>8} {'s/step':>8} {'patches/s':>10} {'vs first':>9}")
     base = None
-    for path in args.configs:
+    for path, precision in runs:
         cfg = load_config(RunConfig, path)
         torch.manual_seed(0)
         model = build_model(cfg)
+        precision = cfg.train.precision if precision == "config" else precision
+        model.set_compute_dtype(precision)
+        label = f"{path}@{precision}" if len(args.precisions) > 1 else path
         spec = model.input_spec
         # the batch the model's input spec builds: one tensor per branch, the albedo and a target per branch
         batch = {br: torch.rand(b, spec.channels, s, s) for br in spec.branches}
@@ -72,5 +85,5 @@ def bench_train(argv: list[str]) -> int:
         base = base or rate
         n = sum(p.numel() for p in model.parameters())
         macs = macs_per_pixel(model) / 1e3
-        print(f"{path:<28} {spec.name:<20} {n:>9} {macs:>8.1f} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
+        print(f"{label:<{w}} {spec.name:<20} {n:>9} {macs:>8.1f} {t:>8.3f} {rate:>10.2f} {rate / base:>8.3f}x")
     return 0
