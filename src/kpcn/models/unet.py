@@ -400,7 +400,11 @@ register_weights("unet_kpcn", "fast", "unet_fast.safetensors",
                  description="U-Net at half resolution, multi-scale 5x5 kernels, 22 k multiply-adds per pixel "
                              "(configs/unet_fast.yaml): 28 procedural 128x128 scenes on the CPU, then fine-tuned on a GPU on "
                              "72 procedural 256x256 scenes, each with its converged reference as an input")
-register_weights("unet_kpcn", "fast4", "unet_fast4.safetensors", default=True,
+register_weights("unet_kpcn", "fast4", "unet_fast4.safetensors",
                  description="unet_kpcn:fast with a fourth kernel level at 1/8 resolution (footprint up to 40 px), "
                              "22 k multiply-adds per pixel (configs/unet_fast4.yaml): fine-tuned from unet_kpcn:fast on the "
                              "CPU on 24 + 38 procedural 256x256 scenes, converged inputs from the 2048-spp references (four runs)")
+register_weights("unet_kpcn", "wide", "unet_wide.safetensors", default=True,
+                 description="unet_kpcn:fast4 twice as wide at every level (48/64/96/128), 79 k multiply-adds per pixel, "
+                             "its convolutions in bfloat16 where the CPU has it (configs/unet_wide.yaml): widened from "
+                             "unet_kpcn:fast4 and trained 12000 steps on the CPU on 67 + 24 procedural 256x256 scenes")
