@@ -11,3 +11,7 @@ N_FEATURES = 27
 #: it (the colour + albedo + normal spec, OIDN) where a frame has it: Blender Cycles' Denoising Albedo, which
 #: follows mirrors and glass to the next rough surface (``albedo`` is the diffuse albedo at the first hit)
 OIDN_ALBEDO = "denoisingAlbedo"
+
+#: the compute dtypes a model's hidden layers can be asked for by name (``train.precision``,
+#: ``denoise(precision=...)`` besides ``auto``, ``DenoiserModel.set_compute_dtype``)
+PRECISIONS = ("float32", "bfloat16")

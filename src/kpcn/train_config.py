@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 
 from .config import ConfigError, from_dict
+from .constants import PRECISIONS
 from .schedule import SCHEDULES
 
 __all__ = ["RunConfig", "DataConfig", "TrainConfig", "check_model_section"]
@@ -148,8 +149,8 @@ class TrainConfig:
             raise ConfigError(f"train.warmup: must be in [0, 1), got {self.warmup!r}")
         if not (math.isfinite(self.grad_clip) and self.grad_clip >= 0):
             raise ConfigError(f"train.grad_clip: must be >= 0 (0: off), got {self.grad_clip!r}")
-        if self.precision not in ("float32", "bfloat16"):
-            raise ConfigError(f"train.precision: expected float32 or bfloat16, got {self.precision!r}")
+        if self.precision not in PRECISIONS:
+            raise ConfigError(f"train.precision: expected {' or '.join(PRECISIONS)}, got {self.precision!r}")
         if not (self.device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", self.device)):
             raise ConfigError(f"train.device: expected auto, cpu, cuda or cuda:<index>, got {self.device!r}")
 

@@ -271,10 +271,12 @@ def bench_denoise(argv: list[str]) -> int:
     args.sizes = args.sizes or [(256, 256), (1024, 1024), (1920, 1080)]
     tile = args.tile if args.tile_given else "auto"
     specs = {name: _denoise_model_spec(name) for name in args.models}
-    bad = [p for p in args.precisions if p not in ("auto", "float32", "bfloat16")]
+    from kpcn.inference.precision import PRECISIONS
+
+    bad = [p for p in args.precisions if p not in PRECISIONS]
     if bad or not args.precisions:
-        print(f"python -m kpcn.bench denoise: precisions: expected auto, float32 or bfloat16, got {bad or '[]'}",
-              file=sys.stderr)
+        print(f"python -m kpcn.bench denoise: precisions: expected {', '.join(PRECISIONS[:-1])} or {PRECISIONS[-1]}, "
+              f"got {bad or '[]'}", file=sys.stderr)
         return 2
     many = len(args.precisions) > 1
     labels = [(f"{name}@{p}" if many else name, name, p) for name in args.models for p in args.precisions]

@@ -49,9 +49,13 @@ def bench_train(argv: list[str]) -> int:
         torch.set_num_threads(args.threads)
     b, s = args.batch, args.patch
     print(f"training throughput: batch {b} of {s}x{s}, {torch.get_num_threads()} threads, median of {args.steps} steps")
-    bad = [p for p in args.precisions if p not in ("config", "float32", "bfloat16")]
+    from ..constants import PRECISIONS
+
+    choices = ("config", *PRECISIONS)
+    bad = [p for p in args.precisions if p not in choices]
     if bad or not args.precisions:
-        print(f"python -m kpcn.bench train: precisions: expected config, float32 or bfloat16, got {bad or '[]'}")
+        print(f"python -m kpcn.bench train: precisions: expected {', '.join(choices[:-1])} or {choices[-1]}, "
+              f"got {bad or '[]'}")
         return 2
     runs = [(path, p) for path in args.configs for p in args.precisions]
     w = max([28] + [len(f"{path}@{p}") + 1 for path, p in runs])

@@ -15,9 +15,11 @@ import os
 
 import torch
 
+from ..constants import PRECISIONS as COMPUTE_PRECISIONS
+
 __all__ = ["PRECISIONS", "native_bfloat16", "resolve_precision", "compute_dtype"]
 
-PRECISIONS = ("auto", "float32", "bfloat16")
+PRECISIONS = ("auto", *COMPUTE_PRECISIONS)
 
 
 def native_bfloat16(device: torch.device | str = "cpu") -> bool:

@@ -214,10 +214,10 @@ def relu_(x: torch.Tensor) -> torch.Tensor:
     """``x.relu_()``; a bfloat16 ``x`` that needs no gradient is clamped through its ``int16`` view instead.
 
     A bfloat16 value is negative exactly when its sign bit, the int16 sign bit, is set, so clamping the
-    int16 view at 0 maps every negative value to +0 and leaves the rest: the ReLU, bit for bit (but -0, which
-    becomes +0: an equal value), and 4-8× faster on the CPU than PyTorch's bfloat16 clamp, which converts each value to float32 and back
-    (``tests/test_models.py``). (A NaN with its sign bit set becomes 0, where ``relu_`` keeps it; the
-    network's inputs are finite.)
+    int16 view at 0 maps every negative value to +0 and leaves the rest: the ReLU bit for bit (but -0, which
+    becomes +0, an equal value), 4-8× faster on the CPU than PyTorch's bfloat16 clamp, which converts each
+    value to float32 and back (``tests/test_models.py``). (A NaN with its sign bit set becomes 0, where
+    ``relu_`` keeps it; the network's inputs are finite.)
     """
     if x.dtype == torch.bfloat16 and not (torch.is_grad_enabled() and x.requires_grad):
         x.view(torch.int16).clamp_min_(0)
@@ -232,6 +232,4 @@ class ReLU(nn.ReLU):
         super().__init__(inplace=True)
 
     def forward(self, x):  # type: ignore[override]
-        if torch.is_grad_enabled() and x.requires_grad:
-            return F.relu(x, inplace=True)
         return relu_(x)

@@ -50,7 +50,6 @@ pooling block and the bilinear upsampling, summed over the kernel levels).
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -60,98 +59,11 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
-from .layers import INPUT_TRANSFORMS, Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, transform_input
+from .layers import Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, transform_input
 from .registry import register_model, register_weights
+from .unet_config import UNetConfig
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
-
-
-@dataclass
-class UNetConfig:
-    """Architecture of :class:`UNetKPCN` (every branch shares it).
-
-    Attributes:
-        input_spec: the :mod:`kpcn.inputs` spec (``kpcn_split``, ``split_novar``, ``color_albedo_normal``).
-        widths: channels of each level, finest first; ``len(widths) - 1`` poolings.
-        convs_per_level: 3×3 convs per level in the encoder and in the decoder.
-        kernel_size: odd size ``k`` of the predicted full-resolution kernels.
-        summary_channels: width of the global summary (0: no summary, a purely local model).
-        logit_scale: bound of the kernel logits, ``s * tanh(z / s)``.
-        init_sigma: std (pixels) of the Gaussian the kernels start as.
-        out_init_gain: scale of the head's initial weights.
-        input_transform: ``log`` (signed log1p of the features), ``logvar`` or ``none``.
-        kernel_scales: levels with kernels, finest first (1: one full-resolution kernel;
-            ``n > 1``: Vogels et al.'s multi-scale reconstruction over the ``n`` finest levels,
-            at most ``len(widths) - 1``, or ``len(widths)`` with ``stem: half``).
-        stem: ``full``: the first level runs at full resolution; ``half``: the network starts on
-            the features average-pooled 2×2 (every level at half the resolution, a quarter of the
-            multiply-adds), and the full-resolution kernels come from the finest decoder level
-            upsampled (bilinear) beside a 1×1 ``guide`` of the full-resolution features.
-        guide_channels: ``stem: half``: width of the full-resolution guide.
-    """
-
-    input_spec: str = "kpcn_split"
-    widths: list[int] = field(default_factory=lambda: [16, 24, 32, 48])
-    convs_per_level: int = 2
-    kernel_size: int = 5
-    summary_channels: int = 8
-    logit_scale: float = 16.0
-    init_sigma: float = 1.0
-    out_init_gain: float = 0.1
-    input_transform: str = "log"
-    kernel_scales: int = 1
-    stem: str = "full"
-    guide_channels: int = 8
-
-    def __post_init__(self) -> None:
-        spec = get_input_spec(self.input_spec)
-        if not self.widths or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.widths):
-            raise ValueError(f"UNetConfig.widths must be a non-empty list of positive integers, got {self.widths!r}")
-        if self.convs_per_level < 1:
-            raise ValueError(f"UNetConfig.convs_per_level must be >= 1, got {self.convs_per_level}")
-        if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise ValueError(f"UNetConfig.kernel_size must be a positive odd integer, got {self.kernel_size}")
-        if self.stem not in ("full", "half"):
-            raise ValueError(f"UNetConfig.stem must be 'full' or 'half', got {self.stem!r}")
-        top = max(1, len(self.widths) - 1 + self.offset)
-        if not 1 <= self.kernel_scales <= top:
-            raise ValueError(f"UNetConfig.kernel_scales must be in 1..{top} (len(widths) - 1, or len(widths) "
-                             f"with stem: half), got {self.kernel_scales}")
-        if self.stem == "half" and self.guide_channels < 1:
-            raise ValueError(f"UNetConfig.guide_channels must be >= 1 with stem: half, got {self.guide_channels}")
-        if self.summary_channels < 0:
-            raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
-        if not self.logit_scale > 0 or not self.init_sigma > 0:
-            raise ValueError("UNetConfig.logit_scale and init_sigma must be positive")
-        if self.input_transform not in INPUT_TRANSFORMS:
-            raise ValueError(f"UNetConfig.input_transform must be one of {INPUT_TRANSFORMS}, got {self.input_transform!r}")
-        if self.input_transform == "logvar" and spec.name != "kpcn_split":
-            raise ValueError("UNetConfig.input_transform 'logvar' needs the kpcn_split input spec")
-
-    @property
-    def offset(self) -> int:
-        """Resolution levels below full of the network's first level (``stem: half``: 1)."""
-        return 1 if self.stem == "half" else 0
-
-    @property
-    def alignment(self) -> int:
-        return 2 ** (len(self.widths) - 1 + self.offset)
-
-    @property
-    def network_radius(self) -> int:
-        c = self.convs_per_level
-        scales = [2 ** (level + self.offset) for level in range(len(self.widths))]
-        encoder = c * sum(scales)
-        decoder = sum(s * (1 + c) for s in scales[:-1])
-        # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution
-        return encoder + decoder + (3 if self.offset else 0)
-
-    @property
-    def kernel_radius(self) -> int:
-        """How far the kernels (and, with several scales, their pooling and upsampling) reach."""
-        if self.kernel_scales == 1:
-            return self.kernel_size // 2
-        return sum((self.kernel_size // 2 + 2) * 2**level for level in range(self.kernel_scales))
 
 
 def _convs(c_in: int, c_out: int, n: int, first=nn.Conv2d) -> nn.Sequential:
