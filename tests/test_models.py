@@ -356,3 +356,13 @@ def test_relu_on_bfloat16_is_the_relu_bit_for_bit():
     y = x.float().requires_grad_()
     ReLU()(y * 1).sum().backward()
     assert torch.equal(y.grad, (x.float() > 0).float())
+
+
+def test_unet_guide_kernel_must_be_odd_and_reaches_no_further_than_the_radius_says():
+    """An even guide kernel is refused; a guide reaching past the half-resolution stem's 3 full-resolution pixels
+    widens the receptive radius the tiling overlaps by (a 3x3 guide does not)."""
+    with pytest.raises(ValueError, match="guide_kernel must be a positive odd integer, got 2"):
+        create_model("unet_kpcn", stem="half", guide_kernel=2)
+    radius = {gk: create_model("unet_kpcn", stem="half", kernel_scales=2, guide_kernel=gk).receptive_radius
+              for gk in (1, 3, 9)}
+    assert radius[1] == radius[3] and radius[9] == radius[1] + 1

@@ -73,10 +73,14 @@ def _inputs(model, layers):
     return spec.build(tensors, spec.frame_value(layers), spec.branches)
 
 
-def test_bfloat16_keeps_the_construction_properties(render):
-    """A zero branch stays exactly zero, a constant colour stays constant, tiles equal the whole frame, and
-    the caller's model is left computing in what it computed in before the call."""
-    model = _unet()
+@pytest.mark.parametrize("guide_kernel", [1, 3])
+def test_bfloat16_keeps_the_construction_properties(render, monkeypatch, guide_kernel):
+    """A zero branch stays exactly zero, a constant colour stays constant, tiles and row bands equal the whole
+    frame, and the caller's model is left computing in what it computed in before the call (a 3x3 guide runs
+    in bfloat16 too)."""
+    from kpcn.inference import rows
+
+    model = _unet(guide_kernel=guide_kernel)
     frame = render("test:glossy", spp=4, seed=1, resolution=RES)
     res = inference.denoise_result(frame, model, device="cpu", precision="bfloat16")
     assert res.stats.precision == "bfloat16" and model.compute_dtype == torch.float32
@@ -95,6 +99,10 @@ def test_bfloat16_keeps_the_construction_properties(render):
     whole = inference.denoise(frame, model, tile=0, device="cpu", precision="bfloat16", rows=False)
     tiled = inference.denoise(frame, model, tile=16, device="cpu", precision="bfloat16")
     assert np.abs(whole - tiled).max() <= 1e-5 * max(float(np.abs(whole).max()), 1e-12)
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", 0)
+    banded = inference.denoise_result(frame, model, tile=0, device="cpu", precision="bfloat16", skip=False)
+    assert banded.stats.row_bands > 0
+    assert np.abs(whole - banded.color).max() <= 1e-5 * max(float(np.abs(whole).max()), 1e-12)
     fp32 = inference.denoise(frame, model, tile=0, device="cpu", precision="float32", rows=False)
     assert np.abs(whole - fp32).max() > 0, "the bfloat16 calls ran in float32"
 

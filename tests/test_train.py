@@ -361,3 +361,42 @@ def test_bfloat16_training_runs_and_is_refused_where_the_model_cannot(tiny_datas
     assert len(res["losses"]) == 3 and all(np.isfinite(res["losses"]))
     weights = read_weights(tmp_path / "u" / "model.safetensors")[1]
     assert all(v.dtype == torch.float32 for v in weights.values())
+
+
+def test_init_extend_grows_the_unet_guide(tiny_dataset, tmp_path, render):
+    """A ``stem: half`` U-Net whose full-resolution guide grows from a 1x1 conv of 4 channels to a 3x3 conv of
+    8, started from the smaller file, denoises a real render as the file does (the file's weights are the
+    centre taps, the head reads the new channels through zero weights); the new taps learn."""
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    unet = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
+                summary_channels=4, kernel_scales=2)
+
+    def ucfg(name, guide_kernel, guide_channels, **kw):
+        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
+        cfg.model = dict(unet, guide_kernel=guide_kernel, guide_channels=guide_channels)
+        return cfg
+
+    train(ucfg("a", 1, 4), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    with pytest.raises(ConfigError, match="guide_kernel"):  # not without saying so
+        train(ucfg("b", 3, 8, init=str(src)), progress=False)
+    train(ucfg("b", 3, 8, init=str(src), init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    small, big = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    g = big.diffuse.guide.weight
+    assert g.shape[0] == 8 and g.shape[2:] == (3, 3)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, small, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, big, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    ring = torch.ones(3, 3, dtype=torch.bool)
+    ring[1, 1] = False
+    assert g[:4][..., ring].abs().max() <= 1e-9  # the file's channels: centre taps only
+    spec = big.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    g.requires_grad_(True)
+    big.diffuse(x["diffuse"]).square().mean().backward()
+    assert g.grad[:4][..., ring].abs().max() > 0

@@ -29,7 +29,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths"}
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths", "guide_channels", "guide_kernel"}
                        if cfg.train.init_extend else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
                 if k not in free and record["hparams"].get(k) != v}
@@ -57,6 +57,8 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     * A conv with more outputs (dim 0: the demodulation weight's channel, or the blending weight of a
       U-Net kernel level that gains a coarser level) gets zero weights and the model's own initial bias
       for them.
+    * A conv weight with a smaller odd kernel (a 1x1 U-Net guide in a model whose guide is 3x3) becomes the
+      centre taps of the model's kernel, zero elsewhere.
     * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes
       the model's own initial value.
 
@@ -76,6 +78,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     groups, source_groups = groups or {}, source_groups or {}
     for k, v in state.items():
         t = target[k]
+        if v.dim() == 4 and t.dim() == 4 and v.shape[2:] != t.shape[2:]:
+            v = _embed_taps(k, v, t, path)
+            out[k] = v
         module = k.rpartition(".")[0]
         if module in groups and module in source_groups and t.shape != v.shape:
             out[k] = _widen(k, v, t, source_groups[module], groups[module], path)
@@ -90,6 +95,19 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
         w[tuple(slice(0, n) for n in v.shape)] = v
         out[k] = w
     return out
+
+
+def _embed_taps(k: str, v: torch.Tensor, t: torch.Tensor, path) -> torch.Tensor:
+    """A conv weight ``v`` with a smaller odd kernel than the model's ``t`` (a 1x1 guide that became 3x3) as the
+    centre taps of a kernel of ``t``'s size, zero elsewhere: the same function on the same padding."""
+    (kh, kw), (th, tw) = v.shape[2:], t.shape[2:]
+    if kh > th or kw > tw or (th - kh) % 2 or (tw - kw) % 2:
+        raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is {tuple(t.shape)} "
+                          f"(a kernel can only grow, by the same number of taps on each side)")
+    dy, dx = (th - kh) // 2, (tw - kw) // 2
+    w = torch.zeros(tuple(v.shape[:2]) + (th, tw), dtype=v.dtype)
+    w[..., dy:dy + kh, dx:dx + kw] = v
+    return w
 
 
 def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path) -> torch.Tensor:

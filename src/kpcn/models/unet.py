@@ -59,7 +59,7 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
-from .layers import Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, transform_input
+from .layers import Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
 from .registry import register_model, register_weights
 from .unet_config import UNetConfig
 
@@ -98,7 +98,10 @@ class UNetBranch(nn.Module):
         # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
         # every level but the coarsest adds one blending-weight channel
         off = cfg.offset
-        self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if off else None
+        self.guide = None
+        if off:
+            gk = cfg.guide_kernel
+            self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if gk == 1 else nn.Conv2d(c_in, cfg.guide_channels, gk)
         self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), k * k + (1 if n > 1 else 0),
                                     GuidedHead if off else Conv1x1)
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
@@ -131,6 +134,8 @@ class UNetBranch(nn.Module):
                 groups[f"dec.{j}.{2 * i}"] = ((w[level],), below + (w[level],) if i == 0 else (w[level],))
             below = (w[level],)
         off = cfg.offset
+        if off:
+            groups["guide"] = ((cfg.guide_channels,), (get_input_spec(cfg.input_spec).channels,))
         groups["head"] = (None, (w[0], cfg.guide_channels) if off else (w[0],))
         for lv in range(1, cfg.kernel_scales):
             groups[f"heads.{lv - 1}"] = (None, (w[lv - off],))
@@ -145,6 +150,17 @@ class UNetBranch(nn.Module):
             head.bias.zero_()
             head.bias[: k * k].copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
         return head
+
+    def guide_of(self, t: torch.Tensor) -> torch.Tensor:
+        """``stem: half``: the guide ``(B, guide_channels, H, W)`` float32 of transformed full-resolution features
+        ``(B, C, H, W)``: ``relu(conv(t))``, ``t`` replicate-padded by ``guide_kernel // 2`` (a 3x3 guide runs in
+        :attr:`compute_dtype`)."""
+        r = self.cfg.guide_kernel // 2
+        if not r:
+            return F.relu(self.guide(t))
+        with self._lowp(t):
+            g = self.guide(F.pad(t, (r, r, r, r), mode="replicate"))
+        return relu_(g).float()
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
         a = self.cfg.alignment
@@ -221,7 +237,8 @@ class UNetBranch(nn.Module):
         if off:  # full resolution: the finest level upsampled, beside the guide of the full-resolution features
             # a 1x1 conv and a ReLU are per pixel, so they commute with replicate padding: pad the
             # guide's few channels rather than the full-resolution features
-            guide = self._pad(F.relu(self.guide(transform_input(x, self.cfg.input_transform))))
+            t = transform_input(x, self.cfg.input_transform)
+            guide = self._pad(self.guide_of(t)) if self.cfg.guide_kernel == 1 else self.guide_of(self._pad(t))
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)

@@ -32,6 +32,9 @@ class UNetConfig:
             multiply-adds), and the full-resolution kernels come from the finest decoder level
             upsampled (bilinear) beside a 1×1 ``guide`` of the full-resolution features.
         guide_channels: ``stem: half``: width of the full-resolution guide.
+        guide_kernel: ``stem: half``: odd size of the guide's convolution (1: per pixel; 3: each pixel's
+            guide also sees its 8 neighbours' features, so the full-resolution kernels can follow edges
+            the half-resolution levels cannot place to the pixel), replicate padding at the frame's edges.
     """
 
     input_spec: str = "kpcn_split"
@@ -46,6 +49,7 @@ class UNetConfig:
     kernel_scales: int = 1
     stem: str = "full"
     guide_channels: int = 8
+    guide_kernel: int = 1
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -63,6 +67,8 @@ class UNetConfig:
                              f"with stem: half), got {self.kernel_scales}")
         if self.stem == "half" and self.guide_channels < 1:
             raise ValueError(f"UNetConfig.guide_channels must be >= 1 with stem: half, got {self.guide_channels}")
+        if self.guide_kernel < 1 or self.guide_kernel % 2 == 0:
+            raise ValueError(f"UNetConfig.guide_kernel must be a positive odd integer, got {self.guide_kernel}")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
@@ -87,8 +93,9 @@ class UNetConfig:
         scales = [2 ** (level + self.offset) for level in range(len(self.widths))]
         encoder = c * sum(scales)
         decoder = sum(s * (1 + c) for s in scales[:-1])
-        # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution
-        return encoder + decoder + (3 if self.offset else 0)
+        # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution (the guide's
+        # reach at full resolution, guide_kernel // 2, counts where it exceeds that)
+        return encoder + decoder + (max(3, self.guide_kernel // 2) if self.offset else 0)
 
     @property
     def kernel_radius(self) -> int:

@@ -1,7 +1,7 @@
 """Row-band inference for the ``stem: half`` U-Net: its full-resolution work done a band of rows at a time.
 
 A ``stem: half`` :class:`~kpcn.models.unet.UNetBranch` does three things at full resolution: it pools
-(and transforms) the features, computes the 1×1 guide of them, and at the end turns the upsampled
+(and transforms) the features, computes the guide of them (a 1×1 or a small conv), and at the end turns the upsampled
 head plus the guide into kernels, applies them and blends in the coarser levels. Each is a few
 element-wise passes over up to 27 channels: on a 1920×1080 frame, hundreds of MB per pass, so the
 whole-frame path is bounded by memory traffic, not arithmetic, and holds every pass's result at once.
@@ -86,6 +86,7 @@ class RowStream:
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
         self._fed = 0
+        self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low = None
         self._coarse: dict[str, torch.Tensor] = {}
 
@@ -103,19 +104,50 @@ class RowStream:
             self._half = {k: torch.empty(1, 3, hp // 2, wp // 2, **self._kw) for k in signals}
         elif signals.keys() != self._full.keys():
             raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
-        kind, g = self.cfg.input_transform, self.branch.guide
-        self._guide[..., r0:r0 + n, :] = g(transform_input(x, kind)).relu_()
+        kind = self.cfg.input_transform
+        self._feed_guide(r0, transform_input(x, kind))
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
             self._half[k][..., r0 // 2:(r0 + n) // 2, :] = pool2(v)
         self._fed = r0 + n
 
+    def _feed_guide(self, r0: int, t: torch.Tensor) -> None:
+        """The guide of the rows a band completes. A ``guide_kernel`` of ``2r + 1`` reads ``r`` rows each side, so
+        the guide trails the bands by ``r`` rows: :attr:`_ctx` keeps the transformed rows the next band's first
+        guide rows read (replicates of row 0 above the frame), and :meth:`run` finishes the last ``r`` rows."""
+        r = self.cfg.guide_kernel // 2
+        if not r:
+            self._guide[..., r0:r0 + t.shape[-2], :] = self.branch.guide_of(t)
+            return
+        if r0 == 0:
+            self._ctx, self._next = t[..., :1, :].expand(-1, -1, r, -1), 0
+        ext = torch.cat([self._ctx, t], dim=-2)  # rows [next - r, r0 + n)
+        self._guide_rows(ext)
+        self._ctx = ext[..., -2 * r:, :]
+
+    def _guide_rows(self, ext: torch.Tensor) -> None:
+        """Guide rows ``[next, next + len(ext) - 2r)`` of transformed rows ``ext`` ``[next - r, ...)``."""
+        r = self.cfg.guide_kernel // 2
+        m = ext.shape[-2] - 2 * r
+        if m <= 0:
+            return
+        padded = F.pad(ext, (r, r, 0, 0), mode="replicate")
+        net = self.branch
+        with net._lowp(padded):
+            g = net.guide(padded)
+        self._guide[..., self._next:self._next + m, :] = g.clamp_min_(0)
+        self._next += m
+
     def run(self, summary: torch.Tensor | None = None) -> None:
         """The network at half resolution (all rows must have been fed); ``summary``: a given global summary."""
         if self._fed != self.padded_size[0]:
             raise ValueError(f"RowStream.run: rows 0..{self._fed} of {self.padded_size[0]} fed")
         net, cfg = self.branch, self.cfg
+        r = cfg.guide_kernel // 2
+        if r:  # the last r guide rows read r replicates of the frame's last row below it
+            self._guide_rows(torch.cat([self._ctx, self._ctx[..., -1:, :].expand(-1, -1, r, -1)], dim=-2))
+            self._ctx = None
         h, decoded = net.decode(net.encode_from(self._release_pooled()), summary)
         self._low = net.head.coarse_part(h)  # the guided head's half-resolution part
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
