@@ -29,8 +29,8 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths", "guide_channels", "guide_kernel"}
-                       if cfg.train.init_extend else set())
+    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
+                        "guide_channels", "guide_kernel"} if cfg.train.init_extend else set())
     mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
                 if k not in free and record["hparams"].get(k) != v}
     if record["model"] != want.get("name") or mismatch:

@@ -151,15 +151,16 @@ class UNetBranch(nn.Module):
             head.bias[: k * k].copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
         return head
 
-    def guide_of(self, t: torch.Tensor) -> torch.Tensor:
-        """``stem: half``: the guide ``(B, guide_channels, H, W)`` float32 of transformed full-resolution features
-        ``(B, C, H, W)``: ``relu(conv(t))``, ``t`` replicate-padded by ``guide_kernel // 2`` (a 3x3 guide runs in
-        :attr:`compute_dtype`)."""
+    def guide_of(self, t: torch.Tensor, pad_rows: bool = True) -> torch.Tensor:
+        """``stem: half``: the guide float32 of transformed full-resolution features ``(B, C, H, W)``:
+        ``relu(conv(t))``, ``t`` replicate-padded by ``r = guide_kernel // 2`` (a 3x3 guide runs in
+        :attr:`compute_dtype`): ``(B, guide_channels, H, W)``; with ``pad_rows=False`` only the columns are
+        padded (a row band that brings ``r`` rows each side, :mod:`kpcn.models.unet_rows`), ``H - 2r`` rows."""
         r = self.cfg.guide_kernel // 2
         if not r:
             return F.relu(self.guide(t))
         with self._lowp(t):
-            g = self.guide(F.pad(t, (r, r, r, r), mode="replicate"))
+            g = self.guide(F.pad(t, (r, r, r, r) if pad_rows else (r, r, 0, 0), mode="replicate"))
         return relu_(g).float()
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, combine_levels
-from .layers import pool2, relu_, transform_input
+from .layers import pool2, transform_input
 from .unet import UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -132,11 +132,7 @@ class RowStream:
         m = ext.shape[-2] - 2 * r
         if m <= 0:
             return
-        padded = F.pad(ext, (r, r, 0, 0), mode="replicate")
-        net = self.branch
-        with net._lowp(padded):
-            g = net.guide(padded)
-        self._guide[..., self._next:self._next + m, :] = relu_(g)  # as UNetBranch.guide_of
+        self._guide[..., self._next:self._next + m, :] = self.branch.guide_of(ext, pad_rows=False)
         self._next += m
 
     def run(self, summary: torch.Tensor | None = None) -> None:
