@@ -37,3 +37,26 @@ def test_every_loss_is_zero_at_the_target_positive_elsewhere_and_differentiable(
     assert float(value.detach()) > 0
     value.backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_loss_params_weigh_the_ms_ssim_term_and_unknown_ones_are_refused():
+    from kpcn.config import ConfigError
+    from kpcn.losses import log_loss
+    from kpcn.train_config import TrainConfig
+
+    g = torch.Generator().manual_seed(3)
+    y = torch.rand(2, 3, 32, 32, generator=g) * 4
+    x = (y + 0.3 * torch.randn(y.shape, generator=g)).clamp_min(0)
+    base, ssim_term = float(log_loss(x, y)), float(create_loss("log_msssim")(x, y)) - float(log_loss(x, y))
+    assert ssim_term > 0
+    weighted = float(create_loss("log_msssim", {"ssim_weight": 3.0})(x, y))
+    assert weighted == pytest.approx(base + 3.0 * ssim_term, rel=1e-5)
+    with pytest.raises(ValueError, match="no parameter 'ssim_wieght'.*ssim_weight"):
+        create_loss("log_msssim", {"ssim_wieght": 3.0})
+    # the config: stage 2's parameters follow its loss; a misspelt one is a ConfigError at load time
+    t = TrainConfig(loss="log", stage2_loss="log_msssim", stage2_loss_params={"ssim_weight": 2.0})
+    assert t.loss_of(1) == ("log", {}) and t.loss_of(2) == ("log_msssim", {"ssim_weight": 2.0})
+    t = TrainConfig(loss="log_msssim", loss_params={"ssim_weight": 2.0})
+    assert t.loss_of(2) == ("log_msssim", {"ssim_weight": 2.0})
+    with pytest.raises(ConfigError, match="stage2_loss_params.*no parameter 'eps'"):
+        TrainConfig(loss="log", stage2_loss="log_msssim", stage2_loss_params={"eps": 1.0})

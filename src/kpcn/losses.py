@@ -1,4 +1,5 @@
-"""Training losses, by name (``create_loss("l1")``). All take ``(B, C, H, W)`` prediction and target.
+"""Training losses, by name (``create_loss("l1")``). All take ``(B, C, H, W)`` prediction and target;
+a loss's keyword parameters are bound by ``create_loss(name, params)`` (``train.loss_params``).
 
 * ``l1``      mean absolute error (the paper's choice)
 * ``relmse``  relative MSE ``(x - y)^2 / (y^2 + eps)`` (Rousselle et al.)
@@ -11,7 +12,7 @@
   constants suit HDR radiance; MS-SSIM over 3 scales of 2×2 average pooling,
   Gaussian window σ = 1.5 (7×7), so that 64-pixel patches have room for all scales
   (smaller patches use fewer scales).
-* ``log_msssim`` ``log + (1 - MS-SSIM)``, the MS-SSIM on the report's tone map
+* ``log_msssim`` ``log + w · (1 - MS-SSIM)`` (``ssim_weight`` w, default 1), the MS-SSIM on the report's tone map
   (Reinhard, then gamma 2.2): the log loss keeps what it does against fireflies
   (``l1_msssim`` alone saturates on them), the MS-SSIM term weighs the structure
   the report's SSIM measures; the two are of the same size on this project's
@@ -19,6 +20,8 @@
 """
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from typing import Callable
 
@@ -37,12 +40,20 @@ def register_loss(name: str):
     return deco
 
 
-def create_loss(name: str) -> LossFn:
-    """The loss function registered as ``name``."""
+def create_loss(name: str, params: dict | None = None) -> LossFn:
+    """The loss function registered as ``name``, with its keyword ``params`` (e.g. ``{"ssim_weight": 2}``) bound."""
     try:
-        return _LOSSES[name]
+        fn = _LOSSES[name]
     except KeyError:
         raise ValueError(f"unknown loss {name!r}; known: {', '.join(sorted(_LOSSES))}") from None
+    if not params:
+        return fn
+    known = [p for p in list(inspect.signature(fn).parameters)[2:]]
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise ValueError(f"loss {name!r} has no parameter {', '.join(map(repr, unknown))}; "
+                         f"its parameters: {', '.join(known) or 'none'}")
+    return functools.partial(fn, **params)
 
 
 def list_losses() -> list[str]:
@@ -141,12 +152,12 @@ def _ms_scales(x: torch.Tensor) -> int:
 
 
 @register_loss("log_msssim")
-def log_msssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0) -> torch.Tensor:
     def tone(t):  # kpcn.metrics.tonemap; the offset keeps the gamma's slope finite at 0
         t = t.clamp_min(0)
         return (t / (1 + t) + 1e-4) ** (1 / 2.2)
 
-    return log_loss(x, y) + (1 - ms_ssim(tone(x), tone(y), _ms_scales(x)))
+    return log_loss(x, y) + ssim_weight * (1 - ms_ssim(tone(x), tone(y), _ms_scales(x)))
 
 
 @register_loss("l1_msssim")

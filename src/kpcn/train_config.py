@@ -103,6 +103,10 @@ class TrainConfig:
     stage2_lr: float | None = None  #: None: same as lr
     loss: str = "l1"
     stage2_loss: str | None = None  #: None: same as loss
+    #: keyword parameters of the loss (e.g. ``{ssim_weight: 2}`` for log_msssim); stage2_loss_params those of
+    #: stage 2's loss (None: loss_params when stage 2 uses the same loss, else its defaults)
+    loss_params: dict = field(default_factory=dict)
+    stage2_loss_params: dict | None = None
     schedule: str = "constant"  #: constant, or onecycle (per stage: warm-up to lr, cosine down; see kpcn.schedule)
     warmup: float = 0.15  #: onecycle: the fraction of each stage spent warming up
     augment: bool = True  #: flips, transposes and RGB permutations of every patch (kpcn.augment)
@@ -129,12 +133,17 @@ class TrainConfig:
     precision: str = "float32"
 
     def __post_init__(self) -> None:
-        from .losses import list_losses
+        from .losses import create_loss, list_losses
 
         for key in ("loss", "stage2_loss"):
             v = getattr(self, key)
             if v is not None and v not in list_losses():
                 raise ConfigError(f"train.{key}: unknown loss {v!r}; known: {', '.join(list_losses())}")
+        for stage in (1, 2):
+            try:
+                create_loss(*self.loss_of(stage))
+            except ValueError as e:
+                raise ConfigError(f"train.{'stage2_' if stage == 2 else ''}loss_params: {e}") from None
         for key in ("stage1_steps", "stage2_steps", "keep_checkpoints", "seed"):
             _at_least("train", self, key, 0)
         for key in ("batch_size", "val_every", "ckpt_every", "log_every", "threads"):
@@ -153,6 +162,13 @@ class TrainConfig:
             raise ConfigError(f"train.precision: expected {' or '.join(PRECISIONS)}, got {self.precision!r}")
         if not (self.device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", self.device)):
             raise ConfigError(f"train.device: expected auto, cpu, cuda or cuda:<index>, got {self.device!r}")
+
+    def loss_of(self, stage: int) -> tuple[str, dict]:
+        """The loss name and its parameters in ``stage`` (1: each branch on its target; 2: the colour)."""
+        if stage == 1 or self.stage2_loss in (None, self.loss):
+            params = self.loss_params if stage == 1 or self.stage2_loss_params is None else self.stage2_loss_params
+            return self.loss, params
+        return self.stage2_loss, self.stage2_loss_params or {}
 
 
 def check_model_section(model: dict) -> dict:

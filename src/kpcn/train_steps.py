@@ -49,9 +49,9 @@ def model_inputs(model, batch: dict) -> dict:
 def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -> torch.Tensor:
     """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour."""
     if stage == 1:
-        loss = create_loss(cfg.train.loss)
+        loss = create_loss(*cfg.train.loss_of(1))
         return sum(loss(out[b], batch[f"y_{b}"]) for b in branches)
-    loss = create_loss(cfg.train.stage2_loss or cfg.train.loss)
+    loss = create_loss(*cfg.train.loss_of(2))
     return loss(out["color"], batch["y_color"])
 
 
