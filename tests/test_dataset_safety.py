@@ -187,6 +187,50 @@ def test_only_frames_whose_record_differs_are_rerendered(mi, tmp_path, monkeypat
     assert [c[1] for c in calls] == [str(inp)]
 
 
+def test_frames_of_an_older_albedo_revision_get_their_albedo_only(mi, tmp_path, monkeypatch, caplog):
+    """A data set rendered before albedo revision 2: its frames keep their radiance bit for bit, their albedo
+    layers become what a fresh render writes, without a full render of any frame."""
+    from kpcn.render.record import HEADER_KEY, read_record
+
+    root = tmp_path / "data"
+    render_dataset(root, 1, **{**SMALL, "first_seed": 3})
+    files = frame_files(root)
+    fresh = {p: read_exr(p) for p in files}
+    for p, f in fresh.items():  # as revision 1 wrote them: no albedo in the record or header, another albedo
+        rec = read_record(p)[0]
+        del rec["albedo"]
+        write_exr(p, {**f.layers, "albedo": f["albedo"] * 7 + 0.5},
+                  {**{k: f.meta[k] for k in ("spp", "renderTimeSeconds", "seed", "scene")},
+                   HEADER_KEY: json.dumps(rec, sort_keys=True)})
+    # rewrite the manifest's records too, as revision 1 wrote them; training names the command that updates them
+    m = json.loads((root / "manifest.json").read_text())
+    for rec in m["scenes"][0]["frames"].values():
+        del rec["albedo"]
+    (root / "manifest.json").write_text(json.dumps(m))
+    from kpcn.train_data import warn_outdated_albedo
+
+    with caplog.at_level(logging.WARNING, logger="kpcn.train"):
+        assert warn_outdated_albedo([root]) == 2
+    assert any("2 of 2 frames have albedo revision 1" in r.getMessage() and "kpcn.render dataset" in r.getMessage()
+               for r in caplog.records)
+    calls = counting_render(monkeypatch)
+    with caplog.at_level(logging.INFO, logger="kpcn.render"):
+        render_dataset(root, 1, **{**SMALL, "first_seed": 3})
+    assert calls == [] and warn_outdated_albedo([root]) == 0  # no frame rendered in full
+    assert sum("updating the albedo" in r.getMessage() for r in caplog.records) == len(files) == 2
+    for p, f in fresh.items():
+        g = read_exr(p)
+        assert g.meta["albedoRevision"] == 2 and read_record(p)[0]["albedo"] == 2
+        for name in ("albedo", "albedoVariance", "color", "colorVariance", "diffuse", "specular", "normal", "depth"):
+            assert np.array_equal(g[name], f[name]), (p.name, name)
+    m = json.loads((root / "manifest.json").read_text())
+    assert m["complete"] is True and all(r["albedo"] == 2 for r in m["scenes"][0]["frames"].values())
+    # up to date now: nothing is touched
+    before = mtimes(files)
+    render_dataset(root, 1, **{**SMALL, "first_seed": 3})
+    assert mtimes(files) == before and calls == []
+
+
 def test_changed_scene_generator_rerenders(mi, tmp_path, monkeypatch):
     from kpcn import scenes
 

@@ -133,6 +133,48 @@ def test_xml_scene_is_overridden_and_rendered(mi, tmp_path):
     assert not any(p.name.startswith(".scene") for p in tmp_path.iterdir()), "temporary XML left behind"
 
 
+def _sphere_scene(bsdf: dict) -> dict:
+    """One sphere filling most of a 24x24 view under a white sky."""
+    return {"type": "scene",
+            "sensor": {"type": "perspective", "fov": 30,
+                       "to_world": __import__("mitsuba").ScalarTransform4f().look_at([0, 0, 4.5], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 24, "height": 24}},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+            "ball": {"type": "sphere", "bsdf": bsdf}}
+
+
+def test_albedo_of_metal_and_glass_is_their_directional_albedo(mi):
+    """Revision 2: a rough metal's albedo is its Fresnel colour, clear glass's 1, both smooth over the surface
+    (Mitsuba's eval_diffuse_reflectance, revision 1, gave a metal seen head-on its glossy peak: up to 37)."""
+    from kpcn.integrator import ALBEDO_REVISION
+
+    metal = render_frame(_sphere_scene({"type": "roughconductor", "material": "Al", "alpha": 0.15}), spp=16, seed=1)
+    glass = render_frame(_sphere_scene({"type": "dielectric", "int_ior": 1.5}), spp=16, seed=1)
+    diffuse = render_frame(_sphere_scene({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.3}}), spp=4)
+    assert metal.meta["albedoRevision"] == ALBEDO_REVISION
+    # (a rough metal loses some energy to masking near grazing angles: 0.6, not 0.9, at its rim)
+    for f, low, high in ((metal, 0.6, 1.0), (glass, 0.97, 1.0), (diffuse, 0.3 - 1e-6, 0.3 + 1e-6)):
+        inner = f["depth"][..., 0] > 0
+        for axis in (0, 1):  # pixels whose four neighbours hit too (silhouettes average hits with the sky)
+            inner &= np.roll(inner, 1, axis) & np.roll(inner, -1, axis)
+        a = f["albedo"][inner]
+        assert inner.sum() > 100 and low <= a.min() and a.max() <= high, (a.min(), a.max())
+    # seen head-on, aluminium's Fresnel reflectance: about 0.9
+    centre = metal["albedo"][10:14, 10:14]
+    assert np.all((centre > 0.85) & (centre < 0.95)), centre
+
+
+def test_albedo_only_render_writes_what_a_full_render_writes(mi):
+    """The same seed and role: the albedo pass gives the full render's albedo, normal and depth bit for bit."""
+    full = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24))
+    alone = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24), albedo_only=True)
+    for name in ("albedo", "albedoVariance", "normal", "normalVariance", "depth"):
+        assert np.array_equal(full[name], alone[name]), name
+    assert full["albedo"].max() <= 1 and alone["color"].max() == 0 and full["color"].max() > 0
+    other = render_frame("test:glossy", spp=8, seed=4, role=8, resolution=(24, 24), albedo_only=True)
+    assert not np.array_equal(other["albedo"], alone["albedo"])  # another role, other samples
+
+
 def test_cli_writes_contract_exr(mi, tmp_path):
     out = tmp_path / "n.exr"
     r = subprocess.run([sys.executable, "-m", "kpcn.render", "frame", "test:glass", "--spp", "4", "--out", str(out),

@@ -165,6 +165,34 @@ def test_cli_reuses_cached_renders(report, stand_in):
             assert float(r["relmse"]) == pytest.approx(mc_old[(r["scene"], int(r["spp"]))], rel=1e-5)
 
 
+def test_cached_renders_of_an_older_albedo_revision_get_their_albedo_only(report, tmp_path):
+    """A cache written before albedo revision 2: the albedo layers are rendered again (as a fresh render writes
+    them), the radiance is kept bit for bit, and nothing is rendered in full."""
+    import dataclasses
+    import shutil
+
+    from kpcn.io import write_exr
+
+    cfg, _ = report
+    old = dataclasses.replace(cfg, out=str(tmp_path))
+    shutil.copytree(cfg.folder / "renders", old.folder / "renders")
+    label = cfg.scenes[0]
+    files = sorted((old.folder / "renders").glob(f"{label.replace(':', '_')}/*/*.exr"))
+    fresh = {p: read_exr(p) for p in files}
+    for p, f in fresh.items():  # as revision 1 wrote them: no albedoRevision, another albedo
+        write_exr(p, {**f.layers, "albedo": f["albedo"] * 7 + 0.5},
+                  {k: f.meta[k] for k in ("spp", "renderTimeSeconds", "seed", "scene")})
+    said = []
+    sr = render_scene(old, label, progress=said.append)
+    assert sr.rendered == [] and len(said) == len(files) and all("updated the albedo" in m for m in said)
+    for p, f in fresh.items():
+        g = read_exr(p)
+        assert g.meta["albedoRevision"] == 2
+        for name in ("albedo", "albedoVariance", "color", "colorVariance", "normal", "depth"):
+            assert np.array_equal(g[name], f[name]), (p.name, name)
+    render_scene(old, label, progress=lambda msg: pytest.fail(f"touched again: {msg}"))
+
+
 def _scene_renders(cfg, label):
     """The fixture's cached renders of one scene (loaded from the report's cache: nothing is rendered)."""
     sr = render_scene(cfg, label, progress=lambda msg: pytest.fail(f"rendered again: {msg}"))

@@ -7,7 +7,16 @@ and MIS (like Mitsuba's ``path``) and, in the same pass, emits as AOVs:
   diffuse lobe) and ``specular`` (everything else: glossy, delta, emitters seen
   directly), with ``diffuse + specular == colour`` sample by sample;
 * first-hit ``albedo``, shading ``normal`` (world space) and ``depth``
-  (distance, 0 where nothing was hit);
+  (distance, 0 where nothing was hit). The albedo is the BSDF's diffuse
+  reflectance where it has a diffuse lobe (diffuse, plastic, principled, ...);
+  where it has none (conductors, glass) it is the weight of the first bounce's
+  BSDF sample, ``f·cos/pdf``, times ``η²`` where it refracts (undoing the
+  radiance's ``1/η²``): its mean over the samples is the directional albedo
+  (the Fresnel colour of a metal, 1 for clear glass), the convention OIDN asks
+  for. Both are clamped to [0, 1]. (Mitsuba's
+  ``eval_diffuse_reflectance`` alone, which albedo revision 1 wrote, evaluates
+  a glossy lobe at normal incidence: up to 37 on rough metals seen head-on,
+  near 0 beside them);
 * the per-sample square of each of those, so that the film's per-pixel mean
   gives the second moment and the variance of the pixel mean is
   ``(m2 - m1^2) / (spp - 1)``.
@@ -22,6 +31,11 @@ Use it through :mod:`kpcn.render`, which selects the ``llvm_ad_rgb`` variant and
 registers the plugin.
 """
 from __future__ import annotations
+
+#: what the ``albedo`` layer holds (the render record's ``albedo``): 1 Mitsuba's ``eval_diffuse_reflectance``;
+#: 2 that where the BSDF has a diffuse lobe, else the first bounce's BSDF-sample weight (times eta² where it
+#: refracts), clamped to [0, 1]
+ALBEDO_REVISION = 2
 
 #: first-moment AOVs (the colour itself is the film's R, G, B)
 MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))
@@ -60,6 +74,9 @@ def register() -> str:
             super().__init__(props)
             self.max_depth = int(props.get("max_depth", 8))
             self.rr_depth = int(props.get("rr_depth", 5))
+            #: only the first hit's layers (albedo, normal, depth; colour 0): the same albedo as a full
+            #: render with the same seed at a fraction of its cost (kpcn.render.albedo)
+            self.albedo_only = bool(props.get("albedo_only", False))
             if self.max_depth < 1:
                 raise ValueError("kpcn_split: max_depth must be >= 1")
 
@@ -82,8 +99,15 @@ def register() -> str:
             hit0 = active & si.is_valid()
             bsdf0 = si.bsdf(ray)
             albedo = dr.select(hit0, bsdf0.eval_diffuse_reflectance(si, hit0), mi.Color3f(0.0))
+            # no diffuse lobe (metals, glass): the first BSDF sample's weight, set at bounce 0 below
+            no_diffuse = hit0 & ~mi.has_flag(bsdf0.flags(), mi.BSDFFlags.Diffuse)
             normal = dr.select(hit0, mi.Vector3f(si.sh_frame.n), mi.Vector3f(0.0))
             depth = dr.select(hit0, si.t, 0.0)
+            if self.albedo_only:  # the sampler's dimensions as bounce 0 below draws them: emitter, then BSDF
+                sampler.next_2d()
+                bs0, w0 = bsdf0.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), hit0)
+                albedo = dr.clip(dr.select(no_diffuse, w0 * dr.square(bs0.eta), albedo), 0.0, 1.0)
+                return L, hit0, self._aovs(L, L_d, albedo, normal, depth)
 
             prev_si = dr.zeros(mi.SurfaceInteraction3f)
             prev_bsdf_pdf = mi.Float(1.0)
@@ -135,6 +159,7 @@ def register() -> str:
                     ratio = dr.select(f_all > 0.0, f_dif / f_all, 0.0)
                     ratio = dr.clip(dr.select(delta, 0.0, ratio), 0.0, 1.0)
                     beta_d = bsdf_weight * ratio
+                    albedo = dr.clip(dr.select(no_diffuse, bsdf_weight * dr.square(bs.eta), albedo), 0.0, 1.0)
                 else:
                     beta_d *= bsdf_weight
                 beta *= bsdf_weight
@@ -155,8 +180,11 @@ def register() -> str:
                 active = active_next & (dr.max(beta) > 0.0)
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
 
-            L_s = L - L_d
-            layers = {"color": L, "diffuse": L_d, "specular": L_s, "albedo": albedo, "normal": normal}
+            return L, hit0, self._aovs(L, L_d, albedo, normal, depth)
+
+        @staticmethod
+        def _aovs(L, L_d, albedo, normal, depth) -> list:
+            layers = {"color": L, "diffuse": L_d, "specular": L - L_d, "albedo": albedo, "normal": normal}
             aovs = []
             for name, _ in MOMENT1:
                 if name == "depth":
@@ -170,7 +198,7 @@ def register() -> str:
                 else:
                     v = layers[name]
                     aovs += [v.x * v.x, v.y * v.y, v.z * v.z]
-            return L, hit0, aovs
+            return aovs
 
     mi.register_integrator("kpcn_split", lambda props: SplitPathIntegrator(props))
     _REGISTERED = True

@@ -54,12 +54,34 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
     return root
 
 
+def warn_outdated_albedo(roots) -> int:
+    """Warn about data sets whose Mitsuba frames were rendered before the current albedo revision
+    (:mod:`kpcn.render.albedo`); returns how many such frames there are."""
+    from .render import dataset_status
+    from .render.albedo import ALBEDO_REVISION
+
+    total = 0
+    for root in roots:
+        status = dataset_status(root)
+        frames = [rec for sc in (status.manifest or {}).get("scenes", []) for rec in sc.get("frames", {}).values()]
+        old = sum(1 for rec in frames if not str(rec.get("source", "")).startswith("cycles:")
+                  and rec.get("albedo", 1) < ALBEDO_REVISION)
+        if old:
+            log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
+                        "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),
+                        status.command())
+        total += old
+    return total
+
+
 def split_pairs(cfg: RunConfig, progress: bool = True):
     """``(train_pairs, val_pairs)``: the validation frames are ``data.val_root``'s or the last ``data.val_scenes``
     scenes (by name) of ``data.root`` and ``data.extra_roots`` together."""
     from .render import DatasetError
 
     root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
+    if _rank_of_world() == 0:
+        warn_outdated_albedo([root, *cfg.data.extra_roots])
     pairs = read_manifest(root, cfg.data.spp)
     ref_spp = dict.fromkeys((p.scene for p in pairs), _ref_spp(root))  # one manifest read per data set
     for extra in cfg.data.extra_roots:  # more rendered data sets (complete ones; never rendered here)

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..integrator import MOMENT2, aov_layout
+from ..integrator import ALBEDO_REVISION, MOMENT2, aov_layout
 from ..io import Frame, write_exr
 from .scene import ensure_variant, load_scene
 
@@ -36,6 +36,7 @@ def render_frame(
     role: int = 0,
     loaded=None,
     params: Mapping[str, Any] | None = None,
+    albedo_only: bool = False,
 ) -> Frame:
     """Render ``scene`` at ``spp`` samples per pixel into a :class:`~kpcn.io.Frame`.
 
@@ -50,17 +51,21 @@ def render_frame(
             share seeds, so inputs and references have independent noise.
         loaded: a ``(mi.Scene, name, notes)`` from :func:`load_scene` to reuse.
         params: the XML file's ``$name`` parameters (see :func:`load_scene`).
+        albedo_only: trace only the first hit: ``albedo``, ``normal`` and ``depth`` (and their
+            variances) as a full render with the same arguments writes them, the radiance layers 0
+            (:mod:`kpcn.render.albedo`).
 
     Returns:
         Frame with ``color``, ``diffuse``, ``specular``, ``albedo``, ``normal``,
         ``depth`` and ``<layer>Variance`` (variance of the pixel mean), and meta
-        ``spp``, ``renderTimeSeconds`` (wall time of the passes), ``seed``, ``scene``.
+        ``spp``, ``renderTimeSeconds`` (wall time of the passes), ``seed``, ``scene`` and
+        ``albedoRevision`` (:data:`kpcn.integrator.ALBEDO_REVISION`).
     """
     if spp < 2:
         raise ValueError(f"spp must be >= 2 to estimate variances, got {spp}")
     mi = ensure_variant()
     mi_scene, name, notes = loaded or load_scene(scene, resolution, params)
-    integrator = mi.load_dict({"type": "kpcn_split", "max_depth": int(max_depth)})
+    integrator = mi.load_dict({"type": "kpcn_split", "max_depth": int(max_depth), "albedo_only": bool(albedo_only)})
 
     layout = [("color", 3)] + aov_layout()
     n_ch = sum(c for _, c in layout)
@@ -89,7 +94,8 @@ def render_frame(
     for layer, _ in MOMENT2:
         var = (raw[f"{layer}_m2"] - raw[layer] ** 2) / (spp - 1)
         layers[f"{layer}Variance"] = np.maximum(var, 0.0).astype(np.float32)
-    meta = {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name)}
+    meta = {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name),
+            "albedoRevision": ALBEDO_REVISION}
     return Frame(layers, meta)
 
 

@@ -123,10 +123,15 @@ def scene_identity(scene: Any, resolution: tuple[int, int]) -> tuple[str, str, A
 
 
 def frame_record(*, role: str, spp: int, seed: int, noise_role: int, resolution, max_depth: int,
-                 pass_spp: int, source: str, fingerprint: str) -> dict:
-    return {"record": RECORD_VERSION, "role": role, "spp": int(spp), "seed": int(seed), "noise_role": int(noise_role),
-            "resolution": [int(v) for v in resolution], "max_depth": int(max_depth), "pass_spp": int(pass_spp),
-            "source": str(source), "fingerprint": str(fingerprint)}
+                 pass_spp: int, source: str, fingerprint: str, albedo: int | None = None) -> dict:
+    """A frame's render record; ``albedo``: the integrator's albedo revision (Mitsuba frames; a record
+    written before revision 2 has none)."""
+    rec = {"record": RECORD_VERSION, "role": role, "spp": int(spp), "seed": int(seed), "noise_role": int(noise_role),
+           "resolution": [int(v) for v in resolution], "max_depth": int(max_depth), "pass_spp": int(pass_spp),
+           "source": str(source), "fingerprint": str(fingerprint)}
+    if albedo is not None:
+        rec["albedo"] = int(albedo)
+    return rec
 
 
 def read_record(path: str | os.PathLike) -> tuple[dict | None, tuple[int, int] | None]:
@@ -155,6 +160,18 @@ def _show(key: str, v) -> str:
     return json.dumps(v)
 
 
+def only_albedo_differs(path: Path, want: dict) -> bool:
+    """The frame at ``path`` differs from the record ``want`` in its albedo revision alone (it can be brought
+    up to date by :func:`kpcn.render.albedo.update_albedo` rather than rendered again)."""
+    try:
+        have, size = read_record(path)
+    except Exception:
+        return False
+    if have is None or "albedo" not in want or list(size) != list(want["resolution"]):
+        return False
+    return have.get("albedo", 1) != want["albedo"] and all(have.get(k) == v for k, v in want.items() if k != "albedo")
+
+
 def stale_reason(path: Path, want: dict) -> str | None:
     """Why the frame at ``path`` cannot be reused for the record ``want``; None when it can."""
     if not path.exists():
@@ -165,6 +182,7 @@ def stale_reason(path: Path, want: dict) -> str | None:
         return f"unreadable ({exc})"
     if have is None:
         return "it has no render record (written by another tool or an older kpcn)"
+    have = {"albedo": 1, **have} if "albedo" in want else have  # records before revision 2 had no albedo key
     diffs = [f"{'scene ' if k == 'fingerprint' else ''}{k} {_show(k, have.get(k))} -> {_show(k, want[k])}"
              for k in want if have.get(k) != want[k]]
     if not diffs and list(size) != list(want["resolution"]):
