@@ -39,6 +39,11 @@ def test_missing_layer_names_missing_and_found(render, tmp_path):
     msg = str(err.value)
     assert "albedo" in msg and "normalVariance" in msg
     assert "found:" in msg and "diffuse" in msg and "specular" in msg
+    # a frame reads as a mapping of its layers; a key that is no layer name is still a clear MissingLayerError
+    f = read_exr(tmp_path / "m.exr")
+    assert dict(f).keys() == f.layers.keys() and len(f) == len(f.layers) and sorted(f) == sorted(f.layers)
+    with pytest.raises(MissingLayerError, match="missing layer.s. 0; found: .*color"):
+        f[0]
 
 
 def test_nonfinite_values_are_replaced_and_counted(render, tmp_path):

@@ -23,8 +23,8 @@ class MissingLayerError(ExrError, KeyError):
     """Layers a consumer needs are absent; the message names them and what was found."""
 
     def __init__(self, path, missing: Iterable[str], found: Iterable[str], note: str = ""):
-        self.missing = sorted(missing)
-        self.found = sorted(found)
+        self.missing = sorted(map(str, missing))
+        self.found = sorted(map(str, found))
         msg = (
             f"{path}: missing layer(s) {', '.join(self.missing)}; "
             f"found: {', '.join(self.found) if self.found else 'none'}"
@@ -55,6 +55,19 @@ class Frame:
 
     def __contains__(self, name: str) -> bool:
         return name in self.layers
+
+    def keys(self):
+        """The layer names (so ``dict(frame)`` is its layers)."""
+        return self.layers.keys()
+
+    def __iter__(self):
+        return iter(self.layers)
+
+    def __len__(self) -> int:
+        return len(self.layers)
+
+    def __bool__(self) -> bool:  # a frame is a frame even without layers (`if frame:` tests for None)
+        return True
 
     def get(self, name: str, default=None):
         return self.layers.get(name, default)
