@@ -133,24 +133,24 @@ def test_xml_scene_is_overridden_and_rendered(mi, tmp_path):
     assert not any(p.name.startswith(".scene") for p in tmp_path.iterdir()), "temporary XML left behind"
 
 
-def _sphere_scene(bsdf: dict) -> dict:
+def _sphere_scene(mi, bsdf: dict) -> dict:
     """One sphere filling most of a 24x24 view under a white sky."""
     return {"type": "scene",
             "sensor": {"type": "perspective", "fov": 30,
-                       "to_world": __import__("mitsuba").ScalarTransform4f().look_at([0, 0, 4.5], [0, 0, 0], [0, 1, 0]),
+                       "to_world": mi.ScalarTransform4f().look_at([0, 0, 4.5], [0, 0, 0], [0, 1, 0]),
                        "film": {"type": "hdrfilm", "width": 24, "height": 24}},
             "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
             "ball": {"type": "sphere", "bsdf": bsdf}}
 
 
 def test_albedo_of_metal_and_glass_is_their_directional_albedo(mi):
-    """Revision 2: a rough metal's albedo is its Fresnel colour, clear glass's 1, both smooth over the surface
+    """Revision 2: a rough metal's albedo is its Fresnel colour, clear glass's 1, both within [0, 1]
     (Mitsuba's eval_diffuse_reflectance, revision 1, gave a metal seen head-on its glossy peak: up to 37)."""
     from kpcn.integrator import ALBEDO_REVISION
 
-    metal = render_frame(_sphere_scene({"type": "roughconductor", "material": "Al", "alpha": 0.15}), spp=16, seed=1)
-    glass = render_frame(_sphere_scene({"type": "dielectric", "int_ior": 1.5}), spp=16, seed=1)
-    diffuse = render_frame(_sphere_scene({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.3}}), spp=4)
+    metal = render_frame(_sphere_scene(mi, {"type": "roughconductor", "material": "Al", "alpha": 0.15}), spp=16, seed=1)
+    glass = render_frame(_sphere_scene(mi, {"type": "dielectric", "int_ior": 1.5}), spp=16, seed=1)
+    diffuse = render_frame(_sphere_scene(mi, {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.3}}), spp=4)
     assert metal.meta["albedoRevision"] == ALBEDO_REVISION
     # (a rough metal loses some energy to masking near grazing angles: 0.6, not 0.9, at its rim)
     for f, low, high in ((metal, 0.6, 1.0), (glass, 0.97, 1.0), (diffuse, 0.3 - 1e-6, 0.3 + 1e-6)):

@@ -69,6 +69,11 @@ def register() -> str:
         w = a / (a + b)
         return dr.select(dr.isfinite(w), w, 0.0)
 
+    def first_hit_albedo(albedo, no_diffuse, bs, weight):
+        """Albedo revision 2: where the BSDF has no diffuse lobe, the first BSDF sample's weight (times eta²
+        where it refracts) in place of ``eval_diffuse_reflectance``; clamped to [0, 1]."""
+        return dr.clip(dr.select(no_diffuse, weight * dr.square(bs.eta), albedo), 0.0, 1.0)
+
     class SplitPathIntegrator(mi.SamplingIntegrator):
         def __init__(self, props):
             super().__init__(props)
@@ -106,7 +111,7 @@ def register() -> str:
             if self.albedo_only:  # the sampler's dimensions as bounce 0 below draws them: emitter, then BSDF
                 sampler.next_2d()
                 bs0, w0 = bsdf0.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), hit0)
-                albedo = dr.clip(dr.select(no_diffuse, w0 * dr.square(bs0.eta), albedo), 0.0, 1.0)
+                albedo = first_hit_albedo(albedo, no_diffuse, bs0, w0)
                 return L, hit0, self._aovs(L, L_d, albedo, normal, depth)
 
             prev_si = dr.zeros(mi.SurfaceInteraction3f)
@@ -159,7 +164,7 @@ def register() -> str:
                     ratio = dr.select(f_all > 0.0, f_dif / f_all, 0.0)
                     ratio = dr.clip(dr.select(delta, 0.0, ratio), 0.0, 1.0)
                     beta_d = bsdf_weight * ratio
-                    albedo = dr.clip(dr.select(no_diffuse, bsdf_weight * dr.square(bs.eta), albedo), 0.0, 1.0)
+                    albedo = first_hit_albedo(albedo, no_diffuse, bs, bsdf_weight)
                 else:
                     beta_d *= bsdf_weight
                 beta *= bsdf_weight

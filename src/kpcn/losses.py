@@ -48,7 +48,7 @@ def create_loss(name: str, params: dict | None = None) -> LossFn:
         raise ValueError(f"unknown loss {name!r}; known: {', '.join(sorted(_LOSSES))}") from None
     if not params:
         return fn
-    known = [p for p in list(inspect.signature(fn).parameters)[2:]]
+    known = list(inspect.signature(fn).parameters)[2:]  # after the prediction and the target
     unknown = sorted(set(params) - set(known))
     if unknown:
         raise ValueError(f"loss {name!r} has no parameter {', '.join(map(repr, unknown))}; "

@@ -59,13 +59,13 @@ def warn_outdated_albedo(roots) -> int:
     (:mod:`kpcn.render.albedo`); returns how many such frames there are."""
     from .render import dataset_status
     from .render.albedo import ALBEDO_REVISION
+    from .render.cycles_scene import is_generated
 
     total = 0
     for root in roots:
         status = dataset_status(root)
         frames = [rec for sc in (status.manifest or {}).get("scenes", []) for rec in sc.get("frames", {}).values()]
-        old = sum(1 for rec in frames if not str(rec.get("source", "")).startswith("cycles:")
-                  and rec.get("albedo", 1) < ALBEDO_REVISION)
+        old = sum(1 for rec in frames if not is_generated(rec.get("source")) and rec.get("albedo", 1) < ALBEDO_REVISION)
         if old:
             log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
                         "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),

@@ -50,4 +50,4 @@ def update_albedo(path: str | os.PathLike, scene: Any, spp: int, seed: int, *, r
         layers[name] = new[name]
     header = {**old.meta, **(meta or {}), "albedoRevision": ALBEDO_REVISION}
     write_exr(path, layers, header)
-    return read_exr(path)
+    return Frame(layers, header, os.fspath(path), dict(old.nonfinite))

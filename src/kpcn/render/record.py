@@ -160,6 +160,17 @@ def _show(key: str, v) -> str:
     return json.dumps(v)
 
 
+def _differences(have: dict, size, want: dict) -> dict:
+    """``{key: the record's value}`` for each key of ``want`` the record ``have`` differs in (a record before
+    albedo revision 2 has no ``albedo`` key: revision 1), then ``"size": size`` if the frame's ``(width, height)``
+    is not ``want``'s resolution."""
+    have = {"albedo": 1, **have} if "albedo" in want else have
+    diff = {k: have.get(k) for k in want if have.get(k) != want[k]}
+    if list(size) != list(want["resolution"]):
+        diff["size"] = size
+    return diff
+
+
 def only_albedo_differs(path: Path, want: dict) -> bool:
     """The frame at ``path`` differs from the record ``want`` in its albedo revision alone (it can be brought
     up to date by :func:`kpcn.render.albedo.update_albedo` rather than rendered again)."""
@@ -167,9 +178,7 @@ def only_albedo_differs(path: Path, want: dict) -> bool:
         have, size = read_record(path)
     except Exception:
         return False
-    if have is None or "albedo" not in want or list(size) != list(want["resolution"]):
-        return False
-    return have.get("albedo", 1) != want["albedo"] and all(have.get(k) == v for k, v in want.items() if k != "albedo")
+    return have is not None and list(_differences(have, size, want)) == ["albedo"]
 
 
 def stale_reason(path: Path, want: dict) -> str | None:
@@ -182,9 +191,9 @@ def stale_reason(path: Path, want: dict) -> str | None:
         return f"unreadable ({exc})"
     if have is None:
         return "it has no render record (written by another tool or an older kpcn)"
-    have = {"albedo": 1, **have} if "albedo" in want else have  # records before revision 2 had no albedo key
-    diffs = [f"{'scene ' if k == 'fingerprint' else ''}{k} {_show(k, have.get(k))} -> {_show(k, want[k])}"
-             for k in want if have.get(k) != want[k]]
-    if not diffs and list(size) != list(want["resolution"]):
+    differ = _differences(have, size, want)
+    diffs = [f"{'scene ' if k == 'fingerprint' else ''}{k} {_show(k, v)} -> {_show(k, want[k])}"
+             for k, v in differ.items() if k != "size"]
+    if not diffs and "size" in differ:
         diffs.append(f"its pixels are {size[0]}x{size[1]}, not {_show('resolution', want['resolution'])}")
     return ", ".join(diffs) if diffs else None
