@@ -40,6 +40,7 @@ from kpcn.report import (
     render_scene,
     render_time_model,
     run_report,
+    worse_with_more_samples,
 )
 
 HAS_OIDN = oidn_available()
@@ -308,6 +309,38 @@ def test_frames_worse_than_their_input_are_all_listed(report):
         assert sum(line.startswith("- ") for line in md.splitlines()) == len(worse)
     else:
         assert "None:" in md
+
+
+def test_outputs_worse_with_more_samples_are_listed(report):
+    cfg, res = report
+    worse = res.summary["worse_with_more_samples"]
+    for w in worse:
+        assert w["method"] != MC and w["best_spp"] < w["spp"] and w["relmse"] > 1.02 * w["best_relmse"]
+    md = res.paths["markdown"].read_text().split("## Worse with more samples")[1].split("\n## ")[0]
+    assert sum(line.startswith("- ") for line in md.splitlines()) == len(worse)
+    assert ("None:" in md) == (not worse)
+    # the fixture's rows, with one model's output made worse at the top spp than at the lowest: listed
+    top, low = max(cfg.spp), min(cfg.spp)
+    model = "kpcn"
+    base = {(r["scene"], r["spp"]): r["relmse"] for r in res.rows if r["method"] == model}
+    scene = cfg.scenes[0]
+    bad = [{**r, "relmse": 3.0 * base[(scene, low)]} if (r["method"], r["scene"], r["spp"]) == (model, scene, top) else r
+           for r in res.rows]
+    listed = {(w["scene"], w["method"], w["spp"]) for w in worse_with_more_samples(bad)}
+    assert (scene, model, top) in listed
+
+
+def test_worse_with_more_samples_compares_with_the_best_at_fewer():
+    def row(method, spp, e, scene="a"):
+        return {"scene": scene, "method": method, "spp": spp, "relmse": e}
+    rows = [row("m", 2, 0.10), row("m", 4, 0.05), row("m", 8, 0.06), row("m", 16, 0.051), row("m", 32, 0.04),
+            row("m", 64, 0.045, "b"), row("m", 128, 0.03, "b"),  # another scene: its own ladder
+            row(MC, 2, 0.5), row(MC, 4, 0.9)]  # raw MC is not checked
+    got = worse_with_more_samples(rows)
+    assert [(w["scene"], w["spp"], w["best_spp"]) for w in got] == [("a", 8, 4)]
+    assert got[0]["ratio"] == pytest.approx(1.2)
+    # without the tolerance, the 2 % rise at 16 spp is listed too, against the best before it (4 spp)
+    assert [(w["spp"], w["best_spp"]) for w in worse_with_more_samples(rows, tolerance=0.0)] == [(8, 4), (16, 4)]
 
 
 def test_methods_table_gives_time_and_multiply_adds(report):

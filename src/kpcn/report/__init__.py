@@ -43,12 +43,15 @@ What it does, per scene:
    (:func:`reference_floor`, from its variance buffer) is flagged ``ref_limited``;
 3. runs every method on the converged input and measures how much it changes it
    (:func:`kpcn.report.checks.evaluate_converged`), lists every frame a method
-   made further from the reference than its noisy input, and marks per spp
+   made further from the reference than its noisy input and every output that
+   got further from it with more samples
+   (:func:`kpcn.report.checks.worse_with_more_samples`), and marks per spp
    whether each model beats OIDN on mean relMSE, PSNR and SSIM together;
 4. writes ``results.csv`` (one row per scene, spp, method), ``equal_time.csv``,
    ``converged.csv``, ``report.md`` (equal-time headline, mean table, against
    OIDN, the methods' cost: denoise seconds and multiply-adds per pixel, the
-   converged-input table, the frames made worse, per-scene tables),
+   converged-input table, the frames made worse, the outputs worse with more
+   samples, per-scene tables),
    ``error_vs_time.png`` (log-log relMSE against total seconds, one panel per
    scene plus the mean), ``contact_sheet.png`` (tone-mapped crops at one spp)
    and ``summary.json``; all atomically. The Markdown up to the per-scene table
@@ -91,6 +94,7 @@ from .checks import (
     evaluate_converged,
     method_table,
     worse_than_input,
+    worse_with_more_samples,
 )
 from .cli import main
 from .config import (
@@ -122,6 +126,6 @@ __all__ = [
     "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_scene", "fitted_slope",
     "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "model_method",
     "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "render_scene",
-    "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input", "write_csv",
+    "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input", "worse_with_more_samples", "write_csv",
     "write_outputs",
 ]

@@ -106,6 +106,33 @@ def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = ()) -> li
     return out
 
 
+def worse_with_more_samples(rows: Sequence[dict], tolerance: float = 0.02) -> list[dict]:
+    """Outputs whose relMSE rose with more samples: a method's output at ``spp`` further from the reference
+    than its best output on the same scene at fewer samples.
+
+    A denoiser given more samples should come out closer to the reference; where it does not, it keeps
+    noise it had removed at fewer samples (or adds artefacts). The reference's own noise adds the same
+    relMSE to every spp of a scene, so the comparison holds on reference-limited rows too. ``tolerance``:
+    a rise of at most this fraction is not listed (independent renders at neighbouring spp differ a little).
+    Each item: ``scene, method, spp, relmse, best_spp, best_relmse, ratio``. MC rows are not checked.
+    """
+    by: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        if r["method"] != MC:
+            by.setdefault((r["scene"], r["method"]), []).append(r)
+    out = []
+    for (scene, method), rs in by.items():
+        best = None
+        for r in sorted(rs, key=lambda r: r["spp"]):
+            if best is not None and r["relmse"] > best["relmse"] * (1.0 + tolerance):
+                out.append({"scene": scene, "method": method, "spp": r["spp"], "relmse": r["relmse"],
+                            "best_spp": best["spp"], "best_relmse": best["relmse"],
+                            "ratio": r["relmse"] / max(best["relmse"], 1e-30)})
+            if best is None or r["relmse"] < best["relmse"]:
+                best = r
+    return out
+
+
 def against_oidn(means: Sequence[dict], rows: Sequence[dict] = ()) -> list[dict]:
     """Per model (not MC, not OIDN) and spp: does its mean relMSE <= OIDN's, mean PSNR >= and mean SSIM >=?
 

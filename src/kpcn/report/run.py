@@ -17,7 +17,7 @@ from ..io import atomic_write
 from .analysis import equal_time, equal_time_headline, evaluate_scene, mean_table
 from .cache import render_scene, scene_label
 from .checks import (CONVERGED_FIELDS, against_oidn, converged_table, evaluate_converged, method_table,
-                     worse_than_input)
+                     worse_than_input, worse_with_more_samples)
 from .config import MC, METRICS, OIDN, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
 from .methods import Method, build_methods, check_layers
 from .plots import contact_sheet, plot_error_vs_time
@@ -81,7 +81,7 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
                   rows: Sequence[dict] = (), converged: Sequence[dict] = ()) -> dict:
     """The content of ``summary.json``: config, mean metrics per method and spp, equal-time figures and their
     median headline, the comparison with OIDN, the methods' costs, the converged-input table and the
-    frames made worse than their input."""
+    frames made worse than their input, and the outputs that got worse with more samples."""
     scene_names = [scene_label(s) if isinstance(s, dict) else os.fspath(s) for s in cfg.scenes]
     return {
         "config": {**asdict(cfg), "scenes": scene_names, "resolution": list(cfg.resolution),
@@ -105,6 +105,7 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
         "converged_table": converged_table(converged),
         "worse_than_input": worse_than_input(rows, converged),
         "frames_checked": sum(r["method"] != MC for r in rows) + len(converged),
+        "worse_with_more_samples": worse_with_more_samples(rows),
     }
 
 

@@ -165,6 +165,18 @@ def _worse_markdown(worse: Sequence[dict], summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _more_samples_markdown(worse: Sequence[dict]) -> str:
+    if not worse:
+        return "None: no method's output moved further from the reference when it was given more samples."
+    lines = [f"**{len(worse)} outputs** are further from the reference than the same method's output on the same "
+             "scene at fewer samples (relMSE more than 2 % above its best at a lower spp): the method keeps, at "
+             "that spp, noise it removed at fewer samples.", ""]
+    for w in worse:
+        lines.append(f"- {w['scene']} @ {w['spp']} spp: {w['method']} relMSE {w['relmse']:.4g} > "
+                     f"{w['best_relmse']:.4g} at {w['best_spp']} spp (×{w['ratio']:.3g})")
+    return "\n".join(lines)
+
+
 def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[dict], summary: dict) -> str:
     """The full Markdown report (printed up to the per-scene table: equal time first)."""
     cfg = summary["config"]
@@ -200,6 +212,7 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
     parts += ["", "## Converged input", "",
               _converged_markdown(summary.get("converged_table", []), summary)]
     parts += ["", "## Frames made worse than their input", "", _worse_markdown(summary.get("worse_than_input", []), summary)]
+    parts += ["", "## Worse with more samples", "", _more_samples_markdown(summary.get("worse_with_more_samples", []))]
     parts += ["", "## Per scene", "", _md_table(rows, [("scene", "scene"), ("spp", "spp"), ("method", "method"),
                                                         *_ROW_COLS, ("ref_limited", f"below {k} ref noise")])]
     parts += ["", "Figures: `error_vs_time.png` (relMSE against total seconds; dashed: "
