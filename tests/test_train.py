@@ -400,3 +400,52 @@ def test_init_extend_grows_the_unet_guide(tiny_dataset, tmp_path, render):
     g.requires_grad_(True)
     big.diffuse(x["diffuse"]).square().mean().backward()
     assert g.grad[:4][..., ring].abs().max() > 0
+
+
+def test_converged_max_noise_leaves_out_the_noisy_pixels_of_converged_patches(tiny_dataset, tmp_path):
+    from kpcn.config import ConfigError
+    from kpcn.data import CONVERGED_SPP, PatchDataset, read_pair
+    from kpcn.inputs import get_input_spec
+    from kpcn.train_data import split_pairs
+    from kpcn.train_steps import compute_loss, unconverged_pixels
+
+    spec = get_input_spec("kpcn_split")
+    cfg = tiny_cfg(tiny_dataset, tmp_path)
+    cfg.data.converged_inputs = True
+    pairs = split_pairs(cfg, progress=False)[0]
+    ds = PatchDataset(pairs, 24, 8, seed=1, spec=spec)
+    batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])
+    from_converged = torch.tensor([ds.pairs[int(f)].spp == CONVERGED_SPP for f in ds.index[:, 0]])
+    assert batch["converged"].dtype == torch.bool and torch.equal(batch["converged"], from_converged)
+    assert from_converged.any() and not from_converged.all()
+    # the colour variance the features carry is the renderer's (RGB means of each branch: close, not equal)
+    noisy, _ = read_pair(pairs[0], spec)
+    whole = PatchDataset(pairs[:1], 48, 1, sampling="uniform", spec=spec)[0]
+    var = spec.colour_variance({k: v[None] for k, v in whole.items()})[0, 0].numpy()
+    rendered = noisy["colorVariance"].mean(-1)
+    ratio = var[rendered > 1e-8] / rendered[rendered > 1e-8]
+    assert 0.8 < np.median(ratio) < 1.25 and np.mean((ratio > 0.5) & (ratio < 2)) > 0.9
+    # which pixels are left out: noisy ones (relative noise above the threshold) of converged patches only
+    skip = unconverged_pixels(batch, spec, 0.02)
+    rel = spec.colour_variance(batch).clamp_min(0).sqrt() / (batch["y_color"].mean(1, keepdim=True) ** 2 + 0.01).sqrt()
+    assert torch.equal(skip, (rel > 0.02) & from_converged.view(-1, 1, 1, 1))
+    assert skip.any() and (~skip[from_converged]).any()  # the tiny references have both
+    assert unconverged_pixels({**batch, "converged": torch.zeros_like(from_converged)}, spec, 0.02) is None
+    # they add nothing to the loss's gradient; every other pixel does
+    out = {k: (batch[f"y_{k}"] + 0.1 * torch.randn_like(batch[f"y_{k}"])).requires_grad_()
+           for k in ("diffuse", "specular", "color")}
+    cfg.data.converged_max_noise = 0.02
+    for stage, key in ((1, "diffuse"), (2, "color")):
+        (grad,) = torch.autograd.grad(compute_loss(out, batch, stage, cfg, spec.branches, spec), out[key])
+        assert (grad.abs().sum(1, keepdim=True)[skip] == 0).all()
+        assert (grad.abs().sum(1, keepdim=True)[~skip] > 0).float().mean() > 0.99
+    cfg.data.converged_max_noise = None
+    (grad,) = torch.autograd.grad(compute_loss(out, batch, 2, cfg, spec.branches, spec), out["color"])
+    assert (grad.abs().sum(1, keepdim=True)[skip] > 0).float().mean() > 0.99
+    # a training run with it; refused for a model whose inputs carry no variance
+    cfg = tiny_cfg(tiny_dataset, tmp_path, name="cmn", stage1_steps=2, stage2_steps=2)
+    cfg.data.converged_inputs, cfg.data.converged_max_noise = True, 0.02
+    assert np.isfinite(train(cfg, progress=False)["losses"]).all()
+    cfg.name, cfg.model["input_spec"] = "cmn2", "split_novar"
+    with pytest.raises(ConfigError, match="converged_max_noise.*split_novar"):
+        train(cfg, progress=False)

@@ -106,7 +106,8 @@ def augment_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: torc
                   flips: bool = True, channels: bool = True) -> dict[str, torch.Tensor]:
     """Each patch of ``batch`` (``(B, C, H, W)`` tensors) under its own random :class:`Augmentation`.
 
-    Keys that are branches of ``spec`` are transformed as its features; every other key is an RGB triplet.
+    Keys that are branches of ``spec`` are transformed as its features; ``(B,)`` entries (per-patch
+    labels such as ``converged``) pass through; every other key is an RGB triplet.
     Patches must be square when transposes are on (the batch is stacked again).
     """
     spec = get_input_spec(spec)
@@ -114,6 +115,9 @@ def augment_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: torc
     augs = [Augmentation.draw(g, flips, channels) for _ in range(n)]
     out = {}
     for k, v in batch.items():
+        if v.dim() == 1:
+            out[k] = v
+            continue
         s = spec if k in spec.branches else None
         if s is None and v.shape[-3] != 3:
             raise ValueError(f"augment_batch: {k!r} has {v.shape[-3]} channels; only branches of {spec.name} "

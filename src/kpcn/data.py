@@ -25,6 +25,9 @@ from .io import Frame, read_exr
 
 PAPER_PATCHES_PER_PIXEL = 400 / (1280 * 720)
 
+#: the ``spp`` label of a converged pair (its input is the reference render itself)
+CONVERGED_SPP = 0
+
 
 @dataclass
 class FramePair:
@@ -188,7 +191,8 @@ class PatchDataset(Dataset):
     :meth:`resample` draws a new set of patch positions (call it at each epoch).
     Items are dicts of float32 ``(C, size, size)`` tensors: one per branch of the spec
     (``diffuse``, ``specular`` for the split specs), ``albedo``, ``y_<branch>``,
-    ``y_color`` and ``noisy_color``.
+    ``y_color`` and ``noisy_color``; where ``pairs`` hold converged pairs (spp
+    :data:`CONVERGED_SPP`), also ``converged``: a 0-d bool tensor, True on their patches.
     """
 
     def __init__(
@@ -207,6 +211,8 @@ class PatchDataset(Dataset):
         if not pairs:
             raise ValueError("PatchDataset: no frames")
         self.pairs = list(pairs)
+        self._converged = [p.spp == CONVERGED_SPP for p in self.pairs] if any(
+            p.spp == CONVERGED_SPP for p in self.pairs) else None
         self.patch_size = patch_size
         self.sampling = sampling
         self.frames, self.importance = [], []
@@ -262,8 +268,12 @@ class PatchDataset(Dataset):
         f, y, x = (int(v) for v in self.index[idx])
         s = self.patch_size
         if self.store is not None:
-            return self.store.crop(f, y, x, s)
-        return {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
+            item = self.store.crop(f, y, x, s)
+        else:
+            item = {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
+        if self._converged is not None:
+            item["converged"] = torch.tensor(self._converged[f])
+        return item
 
 
 class FrameDataset(Dataset):

@@ -93,6 +93,9 @@ class InputSpec:
             (the patch store keeps them float32; the ``logvar`` transform logs them).
         prefer: ``((layer, other), ...)``: ``layer`` is read from ``other`` in frames that have it
             (:meth:`select`); e.g. OIDN's albedo (Cycles' Denoising Albedo) for ``albedo``.
+        colour_variance: ``colour_variance(inputs) -> (B, 1, H, W)``: the variance of the pixel mean of
+            the colour (mean over RGB) as the built inputs carry it, or None where they carry no
+            variance (training's ``data.converged_max_noise`` needs it).
     """
 
     name: str
@@ -114,6 +117,7 @@ class InputSpec:
     prefer: tuple[tuple[str, str], ...] = ()
     frame_stat: Callable | None = field(default=None, repr=False)
     revision: int = 0
+    colour_variance: Callable[[Tensors], torch.Tensor] | None = field(default=None, repr=False)
 
     def select(self, frame):
         """The :class:`~kpcn.io.Frame` this spec reads from ``frame``: its layers with :attr:`prefer` applied."""
@@ -199,6 +203,16 @@ def _split_targets(ref: Tensors, inputs: Tensors) -> Tensors:
     return {"y_diffuse": d / (inputs["albedo"] + EPS), "y_specular": torch.log1p(s), "y_color": d + s}
 
 
+def _split_colour_variance(inputs: Tensors) -> torch.Tensor:
+    """The colour's variance ``(B, 1, H, W)`` from the split features: the diffuse branch's variance of
+    the irradiance times the albedo squared, plus the specular branch's variance of log(1 + specular)
+    times (1 + specular) squared (the delta method backwards); each an RGB mean, as the features keep them."""
+    d, s, a = inputs["diffuse"], inputs["specular"], inputs["albedo"]
+    var_d = d[:, COLOR_VAR] * ((a + EPS) ** 2).mean(1, keepdim=True)
+    var_s = s[:, COLOR_VAR] * torch.exp(2.0 * s[:, 0:3].clamp_min(0.0)).mean(1, keepdim=True)
+    return var_d + var_s
+
+
 _SPLIT_BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
 _AUX = ("albedo", "normal", "depth")
 
@@ -222,6 +236,7 @@ def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
         grad_x=(4, 14) if variances else (3, 13), grad_y=(14, 24) if variances else (13, 23),
         variance_channels=(*range(COLOR_VAR.start, COLOR_VAR.stop), *range(FEATURE_VAR.start, FEATURE_VAR.stop))
         if variances else (),
+        colour_variance=_split_colour_variance if variances else None,
     )
 
 

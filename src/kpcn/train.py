@@ -134,6 +134,9 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     except ValueError as exc:
         raise ConfigError(f"train.precision: {exc}") from None
     spec = model.input_spec
+    if cfg.data.converged_max_noise is not None and spec.colour_variance is None:
+        raise ConfigError(f"data.converged_max_noise: the input spec {spec.name} carries no variance to tell "
+                          f"converged pixels from noisy ones; set it to null or train a model that reads variances")
 
     # 1. the run folder, the checkpoint and the weights to start from (every rank reads; nothing is written)
     def check_run() -> tuple[dict, Path | None, str | None]:
@@ -243,7 +246,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
             batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
         lr_now = set_lr(optimizer, step, cfg)
         out = ddp(model_inputs(model, batch))
-        loss = compute_loss(out, batch, stage, cfg, spec.branches)
+        loss = compute_loss(out, batch, stage, cfg, spec.branches, spec)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"step {step}: non-finite loss {loss.item()}")
         optimizer.zero_grad(set_to_none=True)

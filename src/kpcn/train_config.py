@@ -55,6 +55,12 @@ class DataConfig:
     #: reference close to the inputs' spp is still noisy: listed as its own target, it teaches the model to
     #: keep the noise of a high-spp input (measured: 1024-spp references against 128-256-spp inputs)
     converged_min_ref_spp: int = 0
+    #: converged pairs count only the pixels whose reference is converged: relative noise (the standard
+    #: deviation of the pixel mean, over sqrt(colour^2 + 0.01) as relMSE weighs it) at most this. A 2048-spp
+    #: reference still has 5-10 % noise on rough metals and under hard lights (a third of the pixels of the
+    #: training data above 2 %); taught as their own target there, the model keeps that much noise, and
+    #: fireflies, in a 256-spp input. None: every pixel (needs an input spec with variances)
+    converged_max_noise: float | None = None
     patch_size: int = 65
     patches_per_frame: int | None = None  #: None: the paper's 400 per 1280×720, scaled by area
     sampling: str = "importance"
@@ -79,6 +85,9 @@ class DataConfig:
             _at_least("data", self, key, 1)
         for key in ("val_scenes", "render_first_seed", "workers", "converged_min_ref_spp"):
             _at_least("data", self, key, 0)
+        if self.converged_max_noise is not None and not self.converged_max_noise > 0:
+            raise ConfigError(f"data.converged_max_noise: expected a relative noise > 0 or null, got "
+                              f"{self.converged_max_noise!r}")
         if not isinstance(self.store, str) or not self.store.strip():
             raise ConfigError(f"data.store: expected auto, none or a folder, got {self.store!r}")
         _at_least("data", self, "render_ref_spp", 2)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from .data import read_manifest
+from .data import CONVERGED_SPP, read_manifest
 from .distributed import _agree, _rank_of_world
 from .train_config import RunConfig
 
@@ -134,9 +134,6 @@ def converged_pairs(pairs):
     refs = {p.scene: p.reference_path for p in pairs}
     return [FramePair(scene, CONVERGED_SPP, ref, ref) for scene, ref in sorted(refs.items())]
 
-
-#: the ``spp`` label of a converged pair (its input is the reference render itself)
-CONVERGED_SPP = 0
 
 
 def store_dir(cfg: RunConfig, spec) -> Path | None:

@@ -46,8 +46,34 @@ def model_inputs(model, batch: dict) -> dict:
     return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
 
 
-def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches) -> torch.Tensor:
-    """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour."""
+def unconverged_pixels(batch: dict, spec, max_noise: float) -> torch.Tensor | None:
+    """``(B, 1, H, W)`` bool: True on the pixels of converged patches whose reference is not converged.
+
+    The reference's relative noise is the standard deviation of its pixel mean (from the converged input's
+    own variance features, ``spec.colour_variance``) over ``sqrt(colour^2 + 0.01)``; above ``max_noise`` the
+    pixel is not converged. None when the batch has no converged patch.
+    """
+    flags = batch.get("converged")
+    if flags is None or not bool(flags.any()):
+        return None
+    var = spec.colour_variance(batch).clamp_min(0.0)
+    c = batch["y_color"].mean(1, keepdim=True)
+    noisy = var > (max_noise * max_noise) * (c * c + 0.01)
+    return noisy & flags.view(-1, 1, 1, 1).bool()
+
+
+def compute_loss(out: dict, batch: dict, stage: int, cfg: RunConfig, branches, spec=None) -> torch.Tensor:
+    """Stage 1: the sum over branches of the loss in each branch's space; stage 2: on the colour.
+
+    With ``data.converged_max_noise`` (and ``spec``), the output is replaced by its target on the pixels
+    :func:`unconverged_pixels` marks, so that they add nothing to the loss or its gradient.
+    """
+    skip = None
+    if cfg.data.converged_max_noise is not None and spec is not None:
+        skip = unconverged_pixels(batch, spec, cfg.data.converged_max_noise)
+    if skip is not None:
+        out = {k: torch.where(skip, batch[f"y_{k}"].to(v.dtype), v) if f"y_{k}" in batch else v
+               for k, v in out.items()}
     if stage == 1:
         loss = create_loss(*cfg.train.loss_of(1))
         return sum(loss(out[b], batch[f"y_{b}"]) for b in branches)
