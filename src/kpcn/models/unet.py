@@ -337,5 +337,6 @@ register_weights("unet_kpcn", "fast4", "unet_fast4.safetensors",
 register_weights("unet_kpcn", "wide", "unet_wide.safetensors", default=True,
                  description="unet_kpcn:fast4 twice as wide at every level (48/64/96/128), 79 k multiply-adds per pixel, "
                              "its convolutions in bfloat16 where the CPU has it (configs/unet_wide.yaml): widened from "
-                             "unet_kpcn:fast4 and trained 64000 steps on the CPU on 86 + 24 procedural 256x256 scenes, "
-                             "the last 36000 with the log_msssim loss, the last 8000 on albedo revision 2")
+                             "unet_kpcn:fast4 and trained 76000 steps on the CPU on 87 + 24 procedural 256x256 scenes, "
+                             "the last 48000 with the log_msssim loss, the last 20000 on albedo revision 2, the last "
+                             "12000 with converged pairs counting only their converged pixels")
