@@ -201,7 +201,7 @@ def test_resume_with_no_readable_checkpoint_is_one_line_naming_them(tiny_dataset
     ("data.val_scenes=-1", "data.val_scenes: must be >= 0, got -1"),
     ("data.spp=[]", "data.spp: must list at least one sample count (null: all)"),
     ("data.spp=[0, 4]", "data.spp: every sample count must be >= 1, got [0, 4]"),
-    ("data.converged_max_noise=0", "data.converged_max_noise: expected a relative noise > 0 or null, got 0"),
+    ("data.converged_max_noise=0", "data.converged_max_noise: must be a number > 0, got 0"),
     ("data.render_scenes=0", "data.render_scenes: must be >= 1, got 0"),
     ("data.render_spp=[1, 4]", "data.render_spp: every sample count must be >= 2, got [1, 4]"),
     ("data.render_ref_spp=1", "data.render_ref_spp: must be >= 2, got 1"),

@@ -211,8 +211,7 @@ class PatchDataset(Dataset):
         if not pairs:
             raise ValueError("PatchDataset: no frames")
         self.pairs = list(pairs)
-        self._converged = [p.spp == CONVERGED_SPP for p in self.pairs] if any(
-            p.spp == CONVERGED_SPP for p in self.pairs) else None
+        self._flag_converged = any(p.spp == CONVERGED_SPP for p in self.pairs)
         self.patch_size = patch_size
         self.sampling = sampling
         self.frames, self.importance = [], []
@@ -271,8 +270,8 @@ class PatchDataset(Dataset):
             item = self.store.crop(f, y, x, s)
         else:
             item = {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
-        if self._converged is not None:
-            item["converged"] = torch.tensor(self._converged[f])
+        if self._flag_converged:
+            item["converged"] = torch.tensor(self.pairs[f].spp == CONVERGED_SPP)
         return item
 
 

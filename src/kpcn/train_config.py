@@ -85,9 +85,7 @@ class DataConfig:
             _at_least("data", self, key, 1)
         for key in ("val_scenes", "render_first_seed", "workers", "converged_min_ref_spp"):
             _at_least("data", self, key, 0)
-        if self.converged_max_noise is not None and not self.converged_max_noise > 0:
-            raise ConfigError(f"data.converged_max_noise: expected a relative noise > 0 or null, got "
-                              f"{self.converged_max_noise!r}")
+        _positive("data", self, "converged_max_noise")
         if not isinstance(self.store, str) or not self.store.strip():
             raise ConfigError(f"data.store: expected auto, none or a folder, got {self.store!r}")
         _at_least("data", self, "render_ref_spp", 2)

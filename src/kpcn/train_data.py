@@ -135,7 +135,6 @@ def converged_pairs(pairs):
     return [FramePair(scene, CONVERGED_SPP, ref, ref) for scene, ref in sorted(refs.items())]
 
 
-
 def store_dir(cfg: RunConfig, spec) -> Path | None:
     """The patch store folder of ``spec`` that ``data.store`` names (None: ``none``, frames kept in memory).
 

@@ -126,6 +126,6 @@ __all__ = [
     "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_scene", "fitted_slope",
     "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "model_method",
     "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "render_scene",
-    "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input", "worse_with_more_samples", "write_csv",
-    "write_outputs",
+    "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
+    "worse_with_more_samples", "write_csv", "write_outputs",
 ]

@@ -19,7 +19,7 @@ import numpy as np
 from ..metrics import all_metrics, psnr, relmse
 from .analysis import is_ref_limited, reference_floor
 from .cache import SceneRenders
-from .config import MC, OIDN
+from .config import MC, MORE_SAMPLES_TOLERANCE, OIDN
 from .methods import Method
 
 #: per-scene fields of the converged-input table (``converged.csv``)
@@ -106,7 +106,7 @@ def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = ()) -> li
     return out
 
 
-def worse_with_more_samples(rows: Sequence[dict], tolerance: float = 0.02) -> list[dict]:
+def worse_with_more_samples(rows: Sequence[dict], tolerance: float = MORE_SAMPLES_TOLERANCE) -> list[dict]:
     """Outputs whose relMSE rose with more samples: a method's output at ``spp`` further from the reference
     than its best output on the same scene at fewer samples.
 

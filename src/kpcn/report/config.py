@@ -16,6 +16,8 @@ TIMES = ("render_s", "denoise_s", "total_s")
 CSV_FIELDS = ("scene", "spp", "method", *METRICS, *TIMES, "width", "height", "ref_spp", "ref_floor", "ref_limited")
 MC = "mc"  #: method name of the raw Monte Carlo rows
 OIDN = "oidn"  #: method name of Intel Open Image Denoise
+#: a rise in relMSE (a fraction) that "worse with more samples" lets pass (independent renders differ a little)
+MORE_SAMPLES_TOLERANCE = 0.02
 #: unseen scenes: procedural seeds far from the training data's (0 to about 100), named test scenes, and
 #: the XML scene files shipped in kpcn/scenes/files/ (real Mitsuba files, not from the generator)
 DEFAULT_SCENES = ("random:900001", "random:900002", "random:900003", "test:glossy", "test:glass", "test:textured",

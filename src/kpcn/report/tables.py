@@ -9,7 +9,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..io import atomic_write
-from .config import CSV_FIELDS
+from .config import CSV_FIELDS, MORE_SAMPLES_TOLERANCE
 
 
 def write_csv(path: Path, rows: Sequence[dict], fields: Sequence[str] = CSV_FIELDS) -> None:
@@ -169,7 +169,8 @@ def _more_samples_markdown(worse: Sequence[dict]) -> str:
     if not worse:
         return "None: no method's output moved further from the reference when it was given more samples."
     lines = [f"**{len(worse)} outputs** are further from the reference than the same method's output on the same "
-             "scene at fewer samples (relMSE more than 2 % above its best at a lower spp): the method keeps, at "
+             f"scene at fewer samples (relMSE more than {MORE_SAMPLES_TOLERANCE * 100:g} % above its best at a lower spp): the "
+             "method keeps, at "
              "that spp, noise it removed at fewer samples.", ""]
     for w in worse:
         lines.append(f"- {w['scene']} @ {w['spp']} spp: {w['method']} relMSE {w['relmse']:.4g} > "
