@@ -1,5 +1,6 @@
 """Row-band inference of the ``stem: half`` U-Net (:mod:`kpcn.models.unet_rows`, :mod:`kpcn.inference.rows`)
-and the layers written for it (:func:`pool2`, :func:`conv1x1`, :func:`kernel_apply_padded`).
+and the layers written for it (:func:`pool2`, :func:`upsample2`, :func:`conv1x1`, :func:`kernel_apply_padded`,
+the kernel weights and the guided head's accumulating product).
 
 The frame is a real render (Mitsuba, tiny) whose size is not a multiple of the U-Net's alignment; the
 models are random-init with sharp kernels, so a band that read a wrong row shows up as a large error.
@@ -18,7 +19,8 @@ from kpcn.features import frame_to_tensors
 from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
-from kpcn.models.layers import conv1x1, pool2
+from kpcn.models.kernel_heads import GuidedHead, _softmax_weights
+from kpcn.models.layers import conv1x1, pool2, upsample2
 from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
 
 FRAME_RES = (150, 117)  # width, height: neither a multiple of the alignment (16)
@@ -108,6 +110,60 @@ def test_pool2_is_the_2x2_average():
     cl = x.contiguous(memory_format=torch.channels_last)
     assert torch.allclose(pool2(cl), F.avg_pool2d(x, 2), atol=1e-15)
     assert torch.autograd.gradcheck(pool2, (x[:1, :2].clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("shape", [(2, 5, 6, 10), (1, 3, 7, 5), (1, 2, 1, 4), (1, 3, 4, 1), (1, 1, 1, 1)])
+def test_upsample2_is_bilinear_interpolation(shape):
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(*shape, generator=g, dtype=torch.float64)
+    want = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    for layout in (x, x.contiguous(memory_format=torch.channels_last), x[..., :, :].transpose(-1, -2).transpose(-1, -2)):
+        out = upsample2(layout)
+        assert out.shape == want.shape and out.is_contiguous()
+        assert torch.allclose(out, want, atol=1e-12)
+    if shape[-2] >= 3:  # a band whose first and last rows are context: the inner rows of the whole map's upsampling
+        assert torch.allclose(upsample2(x, context_rows=True), want[..., 2:-2, :], atol=1e-12)
+    with torch.enable_grad():  # with autograd, F.interpolate's own (differentiable) result
+        xs = x.clone().requires_grad_()
+        upsample2(xs).sum().backward()
+        assert xs.grad is not None and torch.allclose(xs.grad, torch.full_like(x, 4.0))
+
+
+def test_upsample2_band_needs_context():
+    with pytest.raises(ValueError, match="at least 3 rows"):
+        upsample2(torch.zeros(1, 1, 2, 4), context_rows=True)
+
+
+@pytest.mark.parametrize("s", [4.0, 16.0, 100.0])
+def test_kernel_weights_are_the_bounded_softmax(s):
+    """The inference weights (sigmoid and exp2, unnormalised) are ``softmax(s tanh(z / s))`` once divided by
+    their sum, for logits from small to far into the bound, and the input is left alone unless in place."""
+    g = torch.Generator().manual_seed(4)
+    z = torch.randn(2, 25, 6, 7, generator=g, dtype=torch.float64) * torch.tensor([0.1, 3.0, 40.0, 400.0]
+                                                                                   ).repeat(7)[:25].view(1, 25, 1, 1)
+    want = torch.softmax(s * torch.tanh(z / s), dim=1)
+    before = z.clone()
+    w, norm = _softmax_weights(z, s)
+    assert torch.equal(z, before)
+    got = w / norm if norm is not None else w
+    assert torch.allclose(got, want, rtol=1e-10, atol=1e-14)
+    w2, norm2 = _softmax_weights(z, s, inplace=True)
+    assert w2.data_ptr() == z.data_ptr() or norm2 is None
+    assert torch.allclose(w2 / norm2 if norm2 is not None else w2, want, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("band", [False, True])
+def test_guided_head_accumulates_its_guide_part(band):
+    g = torch.Generator().manual_seed(5)
+    head = GuidedHead(6 + 4, 5, 1).double()
+    guide = torch.randn(1, 4, 9, 8, generator=g, dtype=torch.float64)
+    if band:  # rows of a taller NCHW guide, as the row streams pass it
+        guide = torch.randn(1, 4, 15, 8, generator=g, dtype=torch.float64)[..., 3:12, :]
+    z = torch.randn(1, 5, 9, 8, generator=g, dtype=torch.float64)
+    want = z + F.conv2d(guide, head.weight[:, 6:])
+    with torch.no_grad():
+        out = head.add_guide_part_(z, guide)
+    assert out.data_ptr() == z.data_ptr() and torch.allclose(out, want, atol=1e-12)
 
 
 @pytest.mark.parametrize("layout", ["nchw", "channels_last", "band", "strided"])

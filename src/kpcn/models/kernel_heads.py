@@ -16,9 +16,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..ops.kernel_apply import KernelApply
-from .layers import conv1x1, pool2
+from .layers import conv1x1, pool2, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "combine_levels"]
+
+_LOG2_E = 1.4426950408889634
 
 
 def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
@@ -34,10 +36,20 @@ def _softmax_weights(z: torch.Tensor, s: float, inplace: bool = False) -> tuple[
     logits lie in ``[-s, s]``, so for ``s <= 80`` exp cannot overflow and no maximum need be subtracted: equal
     to ``torch.softmax`` to float rounding); a caller may divide after applying them (3 channels, not ``k*k``).
     For ``s > 80``: the normalised softmax and None. ``inplace``: ``z`` (a temporary) holds the weights."""
-    t = (z.div_(s) if inplace else z / s).tanh_().mul_(s)
+    t = z if inplace else z.clone()
     if s > 80:
-        return torch.softmax(t, dim=1).contiguous(), None
-    return t.exp_(), t.sum(dim=1, keepdim=True)
+        return torch.softmax(bounded_logits_(t, s), dim=1).contiguous(), None
+    # exp(s tanh(z / s)) = 2 ** (log2(e) (2s sigmoid(2z / s) - s)): PyTorch's CPU exp2 is about 3x faster than its exp
+    a = 2.0 * s * _LOG2_E
+    t = t.mul_(2.0 / s).sigmoid_().mul_(a).sub_(0.5 * a).exp2_()
+    return t, t.sum(dim=1, keepdim=True)
+
+
+def bounded_logits_(z: torch.Tensor, s: float) -> torch.Tensor:
+    """``s * tanh(z / s)`` in place, computed as ``2s * sigmoid(2z / s) - s`` (the same function: ``tanh(x) =
+    2 sigmoid(2x) - 1``): PyTorch's CPU sigmoid is about 10x faster than its tanh, which was a fifth of a 1080p
+    denoise (``python -m kpcn.bench denoise``; docs/measured.md). Inference only (no autograd)."""
+    return z.mul_(2.0 / s).sigmoid_().mul_(2.0 * s).sub_(s)
 
 
 @dataclass(frozen=True)
@@ -76,8 +88,7 @@ def combine_levels(filtered, alphas) -> torch.Tensor:
     out = filtered[-1]
     for level in range(len(filtered) - 2, -1, -1):
         f, alpha = filtered[level], alphas[level]
-        up = F.interpolate(out - pool2(f), scale_factor=2, mode="bilinear", align_corners=False)
-        out = f + alpha * up
+        out = f + alpha * upsample2(out - pool2(f))
     return out
 
 
@@ -93,8 +104,19 @@ class GuidedHead(nn.Conv2d):
 
     def forward(self, pair):  # type: ignore[override]
         coarse, guide = pair
-        up = F.interpolate(self.coarse_part(coarse), scale_factor=2, mode="bilinear", align_corners=False)
-        return up.add_(self.guide_part(guide))  # in place: one full-size tensor fewer
+        return self.add_guide_part_(upsample2(self.coarse_part(coarse)), guide)  # in place: one full-size tensor fewer
+
+    def add_guide_part_(self, z: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
+        """``z += W_g · guide`` in place and ``z``: ``z`` ``(B, O, H, W)``, ``guide`` ``(B, Cg, H, W)``. Without autograd,
+        for one NCHW ``z`` and a ``guide`` whose channels' rows follow on (NCHW, or a band of rows of it), one matrix
+        product that accumulates into ``z`` (no temporary of ``O`` full-resolution channels to add)."""
+        b, o, h, w = z.shape
+        flat = guide.stride(-1) == 1 and (h == 1 or guide.stride(-2) == w)
+        if b != 1 or torch.is_grad_enabled() or not z.is_contiguous() or not flat:
+            return z.add_(self.guide_part(guide))
+        wg = self.weight[:, self.in_channels - guide.shape[1]:].reshape(o, -1)
+        z.view(o, h * w).addmm_(wg, guide[0].reshape(guide.shape[1], h * w))
+        return z
 
     def coarse_part(self, coarse: torch.Tensor) -> torch.Tensor:
         """``W_c · coarse + b`` at the coarse resolution (before the upsampling)."""

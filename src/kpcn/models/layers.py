@@ -7,8 +7,8 @@
   kernels are a Gaussian;
 * :func:`albedo_ratio`: the per-tap factor that turns a kernel applied to the
   colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``);
-* :func:`pool2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool and a 1×1 convolution
-  written for the CPU's memory traffic (what the U-Net does at full resolution);
+* :func:`pool2`, :func:`upsample2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool, a bilinear 2×
+  upsampling and a 1×1 convolution written for the CPU's memory traffic (what the U-Net does at full resolution);
 * :func:`relu_` (:class:`ReLU`): an in-place ReLU that is fast on bfloat16 tensors too;
 * :func:`up_cat_conv3x3`: a U-Net decoder's first convolution of ``[nearest_up2(coarse), skip]``
   without building either (a transposed convolution of the coarse input plus a convolution of the skip).
@@ -22,7 +22,7 @@ from torch import nn
 from ..inputs import get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "conv1x1", "Conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "upsample2", "conv1x1", "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
@@ -99,6 +99,50 @@ def pool2(x: torch.Tensor) -> torch.Tensor:
     rounding, several times faster on the CPU (two strided adds; any memory format)."""
     y = x[..., 0::2, :] + x[..., 1::2, :]
     return (y[..., 0::2] + y[..., 1::2]).mul_(0.25)
+
+
+def upsample2(x: torch.Tensor, context_rows: bool = False) -> torch.Tensor:
+    """Bilinear 2× upsampling of ``(B, C, H, W)``: ``F.interpolate(x, scale_factor=2, mode="bilinear",
+    align_corners=False)`` to float rounding, about 2.5× faster on the CPU without autograd (four
+    ``lerp`` passes with the fixed weights 3/4 and 1/4, where PyTorch's kernel computes source indices and
+    weights for every output element); with autograd, ``F.interpolate`` itself.
+
+    Output row ``2i`` is ``3/4 x[i] + 1/4 x[i - 1]`` and row ``2i + 1`` is ``3/4 x[i] + 1/4 x[i + 1]``, the
+    same for columns, with the edge rows and columns repeated (what ``align_corners=False`` does).
+
+    Args:
+        x: ``(B, C, H, W)``, NCHW or ``channels_last``.
+        context_rows: ``x``'s first and last rows are only read, as the neighbours of the rows between
+            (a band of rows of a larger map): the result is ``(B, C, 2H - 4, 2W)``, rows ``2 .. 2H - 3`` of
+            the upsampled band, which are those of the upsampled larger map.
+
+    Returns:
+        ``(B, C, 2H, 2W)`` (``2H - 4`` rows with ``context_rows``), contiguous NCHW.
+    """
+    if torch.is_grad_enabled() and x.requires_grad:
+        up = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+        return up[..., 2:-2, :] if context_rows else up
+    b, c, h, w = x.shape
+    if context_rows:
+        if h < 3:
+            raise ValueError(f"upsample2: context_rows needs at least 3 rows, got {h}")
+        mid, above, below = x[..., 1:-1, :], x[..., :-2, :], x[..., 2:, :]
+    else:
+        mid = x
+        above = torch.cat([x[..., :1, :], x[..., :-1, :]], dim=-2) if h > 1 else x
+        below = torch.cat([x[..., 1:, :], x[..., -1:, :]], dim=-2) if h > 1 else x
+    n = mid.shape[-2]
+    v = torch.empty(b, c, 2 * n, w, dtype=x.dtype, device=x.device)
+    torch.lerp(mid, above, 0.25, out=v[..., 0::2, :])
+    torch.lerp(mid, below, 0.25, out=v[..., 1::2, :])
+    out = torch.empty(b, c, 2 * n, 2 * w, dtype=x.dtype, device=x.device)
+    even, odd = out[..., 0::2], out[..., 1::2]
+    even[..., :1].copy_(v[..., :1])  # the first column's left neighbour is itself
+    odd[..., -1:].copy_(v[..., -1:])
+    if w > 1:
+        torch.lerp(v[..., 1:], v[..., :-1], 0.25, out=even[..., 1:])
+        torch.lerp(v[..., :-1], v[..., 1:], 0.25, out=odd[..., :-1])
+    return out
 
 
 def conv1x1(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, combine_levels
-from .layers import pool2, transform_input
+from .layers import pool2, transform_input, upsample2
 from .unet import UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -183,9 +183,8 @@ class RowStream:
         kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
         m = 2 if cfg.kernel_scales > 1 else 0  # the blend's 2x2 pool and bilinear upsampling read 2 rows further
         e0, e1 = max(r0 - m, 0), min(r1 + m, hp)
-        z = F.interpolate(clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1), scale_factor=2, mode="bilinear",
-                          align_corners=False)[..., 2:-2, :]
-        z = z.add_(self.branch.head.guide_part(self._guide[..., e0:e1, :]))
+        z = upsample2(clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1), context_rows=True)
+        z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
         alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         i0, n = r0 - e0, r1 - r0
@@ -197,7 +196,6 @@ class RowStream:
             if alpha is None:
                 out[key] = f
                 continue
-            up = F.interpolate(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - pool2(f), scale_factor=2,
-                               mode="bilinear", align_corners=False)
+            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - pool2(f))
             out[key] = f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
         return out
