@@ -1,6 +1,7 @@
 """kpcn.inference: tiled == untiled, skipping what a scene does not need, weights loading, EXR output, CLI."""
 from __future__ import annotations
 
+import os
 import pickle
 import subprocess
 import sys
@@ -406,8 +407,10 @@ def test_bench_denoise_skip_smoke(render, capsys):
 
 
 _HEAP_SCRIPT = r"""
+import time
 import torch
-from kpcn.inference.heap import heap_tuning_available, reuse_heap
+from kpcn.inference import heap
+from kpcn.inference.heap import heap_tuning_available, release_heap, reuse_heap
 
 def rss_mb():
     for line in open("/proc/self/status"):
@@ -431,22 +434,37 @@ with reuse_heap():
         touch_and_free(48)
     print(rss_mb() - base)
     held = rss_mb()
-    touch_and_free(160)         # above the threshold: mapped and unmapped as before
+    touch_and_free((heap._DURING >> 20) + 32)  # above the threshold: mapped and unmapped as before
     print(rss_mb() - held)
-print(rss_mb() - base)          # outer exit: given back
+kept = rss_mb() - base          # outer exit: kept for KPCN_HEAP_KEEP_S (0.5 s here) for the next call
+print(kept)
+with reuse_heap():              # a call within that time reuses it: nothing new faulted in
+    touch_and_free(48)
+print(rss_mb() - base - kept)
+time.sleep(1.5)
+print(rss_mb() - base)          # idle past the keep time: given back
+with reuse_heap():
+    touch_and_free(48)
+release_heap()                  # or at once, on request
+print(rss_mb() - base)
 """
 
 
 def test_reuse_heap_keeps_freed_memory_during_a_call_and_gives_it_back_after():
     # a fresh interpreter: the heap settings are per process
-    out = subprocess.run([sys.executable, "-c", _HEAP_SCRIPT], capture_output=True, text=True, check=True).stdout.split()
+    env = {**os.environ, "KPCN_HEAP_KEEP_S": "0.5"}
+    out = subprocess.run([sys.executable, "-c", _HEAP_SCRIPT], capture_output=True, text=True, check=True,
+                         env=env).stdout.split()
     assert out[0] == "True", "this test needs glibc (the heap tuning is a no-op elsewhere)"
-    plain, inner, reused, big, after = map(float, out[1:])
+    plain, inner, reused, big, kept, again, idle, released = map(float, out[1:])
     assert plain < 16, f"a freed 48 MB block stayed resident without the tuning: +{plain:.0f} MB"
     assert inner > 40, f"a freed block was not kept for reuse inside the block: +{inner:.0f} MB"
     assert reused < 2 * 48 + 16, f"freed blocks not reused: +{reused:.0f} MB after five 48 MB blocks"
-    assert big < 16, f"a freed 160 MB block (above the threshold) stayed resident: +{big:.0f} MB"
-    assert after < 16, f"memory not given back when the outermost block ended: +{after:.0f} MB"
+    assert big < 16, f"a freed block above the threshold stayed resident: +{big:.0f} MB"
+    assert kept > 40, f"memory not kept for the next call when the outermost block ended: +{kept:.0f} MB"
+    assert again < 16, f"the next call did not reuse the kept memory: +{again:.0f} MB more"
+    assert idle < 16, f"memory not given back after the keep time: +{idle:.0f} MB"
+    assert released < 16, f"release_heap() did not give the memory back: +{released:.0f} MB"
 
 
 def test_bench_train_and_denoise_compare_precisions(capsys):

@@ -8,10 +8,15 @@ then costs the kernel a page fault and a zeroed page per 4 KiB when it is first 
 machine that was a quarter of a 1080p denoise (``python -m kpcn.bench denoise``: see ``docs/measured.md``).
 
 :func:`reuse_heap` raises both thresholds (``mallopt``) for the duration of a call, so freed blocks
-stay in the heap and are reused, and afterwards gives the free memory back (``malloc_trim``) and sets
-the thresholds to the values glibc's own dynamic rule reaches once a process has freed a block of
-32 MiB or more (mmap 32 MiB, trim 64 MiB), so the process keeps no more memory between calls than it
-would have. Nested and concurrent calls share one setting (the outermost call restores it).
+stay in the heap and are reused. When the last call ends, the free memory is kept a little longer,
+:data:`KEEP_SECONDS` (a decay, as jemalloc's ``dirty_decay_ms``): a call that starts within it reuses the
+pages the previous one faulted in. On a 1920x1080 frame those faults were 800 MB of 4 KiB pages, a
+fifth of the CPU time of every call (``python -m kpcn.bench denoise`` repeats calls in one process, as a
+renderer denoising frame after frame does; OIDN keeps its buffers between calls too). After that
+idle time, or at once with ``KPCN_HEAP_KEEP_S=0``, the free memory is given back (``malloc_trim``) and
+the thresholds set to the values glibc's own dynamic rule reaches once a process has freed a block of
+32 MiB or more (mmap 32 MiB, trim 64 MiB), so an idle process keeps no more memory than it would have.
+Nested and concurrent calls share one setting (the last to end schedules the release).
 
 Nothing happens where the C library is not glibc (macOS, Windows, musl), or with the environment
 variable ``KPCN_REUSE_HEAP=0``.
@@ -24,19 +29,25 @@ import os
 import sys
 import threading
 
-__all__ = ["reuse_heap", "heap_tuning_available"]
+__all__ = ["reuse_heap", "heap_tuning_available", "release_heap", "KEEP_SECONDS"]
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-#: thresholds during a call: blocks up to 64 MiB come from (and return to) the heap. That covers a 1080p
-#: frame's half-resolution maps (50 MB); larger blocks are still mapped afresh, because keeping them too
-#: fragmented the heap: a 3840x2160 denoise peaked at 2597 MB with 1 GiB against 2113 MB untuned and
-#: 2210 MB with 64 MiB, for no gain in time there (docs/measured.md)
-_DURING = 64 << 20
+#: the mmap threshold during a call and the keep time: blocks up to 1 GiB come from (and return to) the heap. That
+#: covers a 3840x2160 frame's half-resolution maps (200 MB; 50 MB at 1920x1080). With 64 MiB, every such map of a 4K
+#: frame was mapped afresh and faulted in: 4 GB of 4 KiB pages per call, 6.6 s against 3.8 s (docs/measured.md)
+_DURING = 1 << 30
+#: the trim threshold over the same time: free memory at the top of the heap is kept up to this much
+_TRIM_DURING = 1 << 30
 #: thresholds after it: where glibc's dynamic rule settles once a 32 MiB block has been freed
 _AFTER_MMAP, _AFTER_TRIM = 32 << 20, 64 << 20
 
+#: seconds the free memory is kept after the last call ends (``KPCN_HEAP_KEEP_S``; 0: given back at once)
+KEEP_SECONDS = 2.0
+
 _lock = threading.Lock()
 _depth = 0
+_raised = False  # the thresholds are raised (during a call, and until the release after it)
+_timer: threading.Timer | None = None
 _libc = None
 
 
@@ -66,19 +77,33 @@ def heap_tuning_available() -> bool:
     return _glibc() is not None
 
 
+def _keep_seconds() -> float:
+    text = os.environ.get("KPCN_HEAP_KEEP_S", "").strip()
+    try:
+        return max(0.0, float(text)) if text else KEEP_SECONDS
+    except ValueError:
+        raise ValueError(f"KPCN_HEAP_KEEP_S must be a number of seconds, got {text!r}") from None
+
+
 @contextlib.contextmanager
 def reuse_heap(enabled: bool = True):
-    """Within the block, freed memory (blocks up to 64 MiB) is kept in the heap and reused; on leaving
-    the outermost block the free memory is returned to the system. A no-op off glibc or if not ``enabled``."""
-    global _depth
+    """Within the block, freed memory (blocks up to 1 GiB) is kept in the heap and reused; when the last
+    block ends, the free memory is returned to the system after :data:`KEEP_SECONDS` of no new block
+    (``KPCN_HEAP_KEEP_S``), or at once with 0. A no-op off glibc or if not ``enabled``."""
+    global _depth, _raised, _timer
     libc = _glibc() if enabled else None
     if libc is None:
         yield
         return
+    keep = _keep_seconds()
     with _lock:
-        if _depth == 0:
+        if _timer is not None:  # a release was waiting: this call reuses what the last one left
+            _timer.cancel()
+            _timer = None
+        if not _raised:
             libc.mallopt(_M_MMAP_THRESHOLD, _DURING)
-            libc.mallopt(_M_TRIM_THRESHOLD, _DURING)
+            libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_DURING)
+            _raised = True
         _depth += 1
     try:
         yield
@@ -86,6 +111,44 @@ def reuse_heap(enabled: bool = True):
         with _lock:
             _depth -= 1
             if _depth == 0:
-                libc.mallopt(_M_MMAP_THRESHOLD, _AFTER_MMAP)
-                libc.mallopt(_M_TRIM_THRESHOLD, _AFTER_TRIM)
-                libc.malloc_trim(0)
+                if keep > 0:
+                    _timer = threading.Timer(keep, _release_if_idle)
+                    _timer.daemon = True
+                    _timer.start()
+                else:
+                    _release(libc)
+
+
+def _release(libc) -> None:
+    """Thresholds back to glibc's settled values, free memory returned (with :data:`_lock` held)."""
+    global _raised
+    libc.mallopt(_M_MMAP_THRESHOLD, _AFTER_MMAP)
+    libc.mallopt(_M_TRIM_THRESHOLD, _AFTER_TRIM)
+    libc.malloc_trim(0)
+    _raised = False
+
+
+def _release_if_idle() -> None:
+    """The timer's release: skipped if a call started meanwhile (it cancelled or replaced this timer)."""
+    global _timer
+    with _lock:
+        if _timer is not threading.current_thread():
+            return
+        _timer = None
+        if _depth == 0 and _raised:
+            _release(_glibc())
+
+
+def release_heap() -> None:
+    """Give the memory kept after the last call back now (no waiting for :data:`KEEP_SECONDS`); a no-op during a
+    call, off glibc, or when nothing is kept."""
+    global _timer
+    libc = _glibc()
+    if libc is None:
+        return
+    with _lock:
+        if _timer is not None:
+            _timer.cancel()
+            _timer = None
+        if _depth == 0 and _raised:
+            _release(libc)

@@ -155,18 +155,20 @@ def denoise_result(
             check_not_input(out_path, source)
     dev = resolve_device(device)
     read_s = 0.0
+    frame = None
     if model is None:  # the shipped model for the layers this file has
         frame, read_s = _as_frame(exr_path_or_frame, ())
         model, note = choose_default(frame.layers)
         if note:
             warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=2)
-        exr_path_or_frame = frame
     net = load_model(model, dev, trust_pickle=trust_pickle)
     dtype = resolve_precision(precision, net, dev)
     spec = net.input_spec
-    frame, t_read = _as_frame(exr_path_or_frame, spec.layers)
+    if frame is None:
+        frame, read_s = _as_frame(exr_path_or_frame, spec.layers)
+    else:  # already read and sanitised above (our own copy): only the layers to check
+        frame.require(spec.layers)
     frame = spec.select(frame)  # e.g. OIDN's albedo for a colour + albedo + normal model, where the file has it
-    read_s += t_read
     h, w = _validate(frame, spec.layers)
     plans = plan_aovs(frame, list(layers), spec, aov_branch) if layers else []
     if plans and not net.zero_preserving:

@@ -22,7 +22,7 @@ from torch import nn
 from ..inputs import get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "upsample2", "conv1x1", "Conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "upsample2", "conv1x1", "conv1x1_lowp", "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
@@ -177,16 +177,22 @@ def _conv1x1_low(x: torch.Tensor, wm: torch.Tensor, bias: torch.Tensor | None) -
     ``x``'s dtype (float32 accumulation, the result rounded to ``x``'s dtype), then the result and the bias in
     the weights' dtype, NCHW contiguous. A matrix product writes NCHW directly, where a convolution of a
     channels-last map would write channels-last and need a transposing copy (twice the time at 1080p)."""
-    b, c, h, w = x.shape
-    wl = wm.to(x.dtype)
-    if b == 1 and x.is_contiguous(memory_format=torch.channels_last):
-        out = torch.mm(wl, x.permute(0, 2, 3, 1).reshape(h * w, c).t()).view(1, -1, h, w)
-    elif b == 1 and x.is_contiguous():
-        out = torch.mm(wl, x.view(c, h * w)).view(1, -1, h, w)
-    else:
-        out = F.conv2d(x, wl.reshape(-1, c, 1, 1))
-    out = out.to(wm.dtype, memory_format=torch.contiguous_format)
+    out = conv1x1_lowp(x, wm).to(wm.dtype, memory_format=torch.contiguous_format)
     return out.add_(bias.view(1, -1, 1, 1)) if bias is not None else out
+
+
+def conv1x1_lowp(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """The product ``weight · x`` of a 1×1 convolution without bias, in ``x``'s (reduced) precision: ``(B, O, H, W)``
+    NCHW in ``x``'s dtype (float32 accumulation, rounded once), ``weight`` ``(O, C[, 1, 1])`` of any float dtype.
+    Inference; :func:`conv1x1` converts it to the weights' dtype and adds the bias, a caller that keeps a large map
+    can keep it in ``x``'s dtype and convert it a band at a time (:mod:`kpcn.models.unet_rows`)."""
+    b, c, h, w = x.shape
+    wl = weight.reshape(weight.shape[0], c).to(x.dtype)
+    if b == 1 and x.is_contiguous(memory_format=torch.channels_last):
+        return torch.mm(wl, x.permute(0, 2, 3, 1).reshape(h * w, c).t()).view(1, -1, h, w)
+    if b == 1 and x.is_contiguous():
+        return torch.mm(wl, x.view(c, h * w)).view(1, -1, h, w)
+    return F.conv2d(x, wl.reshape(-1, c, 1, 1)).contiguous()
 
 
 class Conv1x1(nn.Conv2d):

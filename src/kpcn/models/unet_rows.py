@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, combine_levels
-from .layers import pool2, transform_input, upsample2
+from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
 from .unet import UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -81,13 +81,15 @@ class RowStream:
         c = branch.enc[0][0].in_channels
         self._kw = dict(device=device, dtype=dtype)
         # channels_last, the layout the network runs in: each band is transposed while it is in cache
-        self._pooled = torch.empty(1, c, hp // 2, wp // 2, memory_format=torch.channels_last, **self._kw)
+        # in the conv stack's dtype (bfloat16: half the memory; its first conv would round them to it all the same)
+        self._pooled = torch.empty(1, c, hp // 2, wp // 2, memory_format=torch.channels_last, device=device,
+                                   dtype=branch.compute_dtype or dtype)
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, **self._kw)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
         self._fed = 0
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
-        self._low = None
+        self._low, self._low_bias = None, None
         self._coarse: dict[str, torch.Tensor] = {}
 
     def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None) -> None:
@@ -145,14 +147,21 @@ class RowStream:
             self._guide_rows(torch.cat([self._ctx, self._ctx[..., -1:, :].expand(-1, -1, r, -1)], dim=-2))
             self._ctx = None
         h, decoded = net.decode(net.encode_from(self._release_pooled()), summary)
-        self._low = net.head.coarse_part(h)  # the guided head's half-resolution part
+        # the guided head's half-resolution part; in reduced precision kept as the product in that dtype (half the
+        # memory), converted and given its bias a band at a time in rows(): the same values
+        head = net.head
+        if h.dtype == torch.float32:
+            self._low, self._low_bias = head.coarse_part(h), None
+        else:
+            self._low, self._low_bias = conv1x1_lowp(h, head.weight[:, :h.shape[1]]), head.bias
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
             weights, alphas = [], []
             for level in range(1, cfg.kernel_scales):
-                z = net.heads[level - 1](decoded[level - 1])
-                alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
-                weights.append(_softmax_weights(z[:, :kk], cfg.logit_scale))
+                hd, d = net.heads[level - 1], decoded[level - 1]
+                # the kernel logits and the blending weight as two products: the logits contiguous, made weights in place
+                alphas.append(torch.sigmoid_(conv1x1(d, hd.weight[kk:], hd.bias[kk:])) if hd.out_channels > kk else None)
+                weights.append(_softmax_weights(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), cfg.logit_scale, inplace=True))
             for key, colour in self._half.items():
                 filtered = []
                 for level, w in enumerate(weights):
@@ -183,7 +192,10 @@ class RowStream:
         kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
         m = 2 if cfg.kernel_scales > 1 else 0  # the blend's 2x2 pool and bilinear upsampling read 2 rows further
         e0, e1 = max(r0 - m, 0), min(r1 + m, hp)
-        z = upsample2(clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1), context_rows=True)
+        low = clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1)
+        if self._low_bias is not None:
+            low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
+        z = upsample2(low, context_rows=True)
         z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
         alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
