@@ -43,11 +43,20 @@ _DENOISE_FALLBACK_MODELS = {  # used when configs/<name>.yaml cannot be found
 }
 
 
-def _denoise_model_spec(name: str) -> tuple[str, dict, str]:
+def _denoise_model_spec(name: str) -> tuple[str, dict | None, str]:
     """``(registry name, model kwargs, origin)`` for a config name (``small``), a YAML path, or
-    ``registry:key=value,...`` (e.g. ``kpcn:layers=5,width=32,conv_size=5,kernel_size=11``)."""
+    ``registry:key=value,...`` (e.g. ``kpcn:layers=5,width=32,conv_size=5,kernel_size=11``); for shipped
+    weights ``model:tag`` (``unet_kpcn:wide``): ``(name, None, origin)``, timed with those weights."""
     from pathlib import Path
 
+    if ":" in name and "=" not in name:
+        from kpcn.models import list_weights, weights_entry
+
+        reg, _, tag = name.partition(":")
+        if tag in list_weights(reg):
+            return name, None, f"shipped weights {weights_entry(reg, tag).path.name}"
+        raise ValueError(f"model spec {name!r}: no shipped weights {tag!r} for {reg!r} (shipped: "
+                         f"{', '.join(list_weights(reg)) or 'none'}); a config is registry:key=value,...")
     if ":" in name:
         import yaml
 
@@ -123,7 +132,12 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         from kpcn.models import create_model
 
         torch.manual_seed(0)
-        model = create_model(model_name, **model_kw).eval()
+        if model_kw is None:  # shipped weights
+            from kpcn.inference import load_model
+
+            model = load_model(model_name, "cpu")
+        else:
+            model = create_model(model_name, **model_kw).eval()
         from kpcn.models.cost import macs_per_pixel
 
         extra["macs_per_px"] = macs_per_pixel(model)
@@ -216,8 +230,9 @@ class DenoiseBenchConfig:
     sizes: list[str] | None = field(default=None, metadata={
         "help": "frame sizes, N or WxH (default: 256 1024 1920x1080; --skip: 256)"})
     models: list[str] = field(default_factory=lambda: ["small", "paper"], metadata={
-        "help": "configs/<name>.yaml model configs, YAML paths, or registry:key=value,... "
-                "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11); --skip: the first"})
+        "help": "configs/<name>.yaml model configs, YAML paths, registry:key=value,... "
+                "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11; random-init weights), or shipped "
+                "weights by name (unet_kpcn:wide); --skip: the first"})
     oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
     rows: bool = field(default=True, metadata={
         "help": "run whole frames at once, not a band of rows at a time (models with row streams; the A/B baseline)"})
@@ -312,10 +327,10 @@ def bench_denoise(argv: list[str]) -> int:
 
     ok = [r for r in results if r.get("status") == "ok"]
     print(f"\ndenoise benchmark: scene {args.scene} at {args.spp} spp (rendered with Mitsuba at each size), kpcn tile {tile}, "
-          f"random-init weights, {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
+          f"random-init weights (but shipped ones), {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
     for name in args.models:
         model_name, kw, origin = specs[name]
-        print(f"  {name}: {model_name} {kw} (from {origin})")
+        print(f"  {name}: {origin}" if kw is None else f"  {name}: {model_name} {kw} (from {origin})")
     print(f"memory = peak RSS during one call minus RSS before it [{ok[0]['mem_method'] if ok else '?'}]; "
           "time = median wall seconds (frame already in memory, model built); cpu = process CPU seconds "
           "(less sensitive to other load on the machine, but it counts OpenMP spin-waiting)")

@@ -28,10 +28,15 @@ def bench_denoise_skip(args) -> int:
     name = args.models[0]
     model_name, kw, origin = _denoise_model_spec(name)
     torch.manual_seed(0)
-    model = create_model(model_name, **kw).eval()
+    if kw is None:  # shipped weights
+        from kpcn.inference import load_model
+
+        model = load_model(model_name, "cpu")
+    else:
+        model = create_model(model_name, **kw).eval()
     w, h = args.sizes[0]
     tile = args.tile if args.tile_given else 64
-    print(f"denoise --skip: model {name} ({model_name} {kw}, from {origin}, random init), {w}x{h}, tile {tile}, "
+    print(f"denoise --skip: model {name} ({model_name} {kw}, from {origin}{', random init' if kw is not None else ''}), {w}x{h}, tile {tile}, "
           f"{args.spp} spp, torch {torch.__version__}, {torch.get_num_threads()} threads; "
           f"full (skip=False) and skip (skip=True) timed alternately, {args.repeats} repeats, median seconds", flush=True)
     rows = []

@@ -11,7 +11,9 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> dict[str, int]:
     """
     counts = {}
     for name, arr in layers.items():
-        if arr.dtype.kind == "f" and np.isfinite(arr.sum()):
+        with np.errstate(invalid="ignore", over="ignore"):  # inf - inf, or a finite sum past float32's range
+            clean = arr.dtype.kind == "f" and np.isfinite(arr.sum())
+        if clean:
             continue  # a NaN or an infinity makes the sum non-finite: one summing pass, no mask, for a clean layer
         bad = ~np.isfinite(arr)
         n = int(bad.sum())
