@@ -111,6 +111,7 @@ class GuidedHead(nn.Conv2d):
         for one NCHW ``z`` and a ``guide`` whose channels' rows follow on (NCHW, or a band of rows of it), one matrix
         product that accumulates into ``z`` (no temporary of ``O`` full-resolution channels to add)."""
         b, o, h, w = z.shape
+        guide = guide.to(z.dtype)  # a guide kept in reduced precision (row streams), in z's for the product
         flat = guide.stride(-1) == 1 and (h == 1 or guide.stride(-2) == w)
         if b != 1 or torch.is_grad_enabled() or not z.is_contiguous() or not flat:
             return z.add_(self.guide_part(guide))

@@ -240,6 +240,8 @@ class UNetBranch(nn.Module):
             # guide's few channels rather than the full-resolution features
             t = transform_input(x, self.cfg.input_transform)
             guide = self._pad(self.guide_of(t)) if self.cfg.guide_kernel == 1 else self.guide_of(self._pad(t))
+            if self.compute_dtype is not None and not torch.is_grad_enabled():
+                guide = guide.to(self.compute_dtype)  # rounded as the row streams keep it (kpcn.models.unet_rows)
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
