@@ -19,7 +19,7 @@ from kpcn.features import frame_to_tensors
 from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
-from kpcn.models.kernel_heads import GuidedHead, _softmax_weights
+from kpcn.models.kernel_heads import GuidedHead, _bounded_softmax, _softmax_weights
 from kpcn.models.layers import conv1x1, pool2, upsample2
 from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
 
@@ -137,7 +137,8 @@ def test_upsample2_band_needs_context():
 @pytest.mark.parametrize("s", [4.0, 16.0, 100.0])
 def test_kernel_weights_are_the_bounded_softmax(s):
     """The inference weights (sigmoid and exp2, unnormalised) are ``softmax(s tanh(z / s))`` once divided by
-    their sum, for logits from small to far into the bound, and the input is left alone unless in place."""
+    their sum, for logits from small to far into the bound, and the input is left alone unless in place; the
+    training path (sigmoid, autograd) is the same function with the right gradient."""
     g = torch.Generator().manual_seed(4)
     z = torch.randn(2, 25, 6, 7, generator=g, dtype=torch.float64) * torch.tensor([0.1, 3.0, 40.0, 400.0]
                                                                                    ).repeat(7)[:25].view(1, 25, 1, 1)
@@ -147,6 +148,10 @@ def test_kernel_weights_are_the_bounded_softmax(s):
     assert torch.equal(z, before)
     got = w / norm if norm is not None else w
     assert torch.allclose(got, want, rtol=1e-10, atol=1e-14)
+    zg = z.clone().requires_grad_()  # the training path: the same function, and its gradient
+    assert torch.allclose(_bounded_softmax(zg, s), want, rtol=1e-10, atol=1e-14)
+    small = z[:1, :, :2, :2].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: _bounded_softmax(t, s), (small,))
     w2, norm2 = _softmax_weights(z, s, inplace=True)
     assert w2.data_ptr() == z.data_ptr() or norm2 is None
     assert torch.allclose(w2 / norm2 if norm2 is not None else w2, want, rtol=1e-10, atol=1e-14)

@@ -26,7 +26,9 @@ _LOG2_E = 1.4426950408889634
 def _bounded_softmax(z: torch.Tensor, s: float) -> torch.Tensor:
     """``softmax(s * tanh(z / s))`` over channels, contiguous; in place where no gradient is needed."""
     if torch.is_grad_enabled() and z.requires_grad:
-        return torch.softmax(torch.tanh(z / s) * s, dim=1).contiguous()
+        # s tanh(z / s) = 2s sigmoid(2z / s) - s, and a softmax ignores the constant: the same function, with
+        # PyTorch's CPU sigmoid ~10x faster than its tanh (tanh and this softmax: 6 % of a training step, py-spy)
+        return torch.softmax(torch.sigmoid(z * (2.0 / s)) * (2.0 * s), dim=1).contiguous()
     w, norm = _softmax_weights(z, s)  # inference: in place (frames are large)
     return w.div_(norm).contiguous() if norm is not None else w
 
