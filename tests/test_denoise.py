@@ -467,6 +467,40 @@ def test_reuse_heap_keeps_freed_memory_during_a_call_and_gives_it_back_after():
     assert released < 16, f"release_heap() did not give the memory back: +{released:.0f} MB"
 
 
+_HEAP_FORK_SCRIPT = r"""
+import os
+import torch
+from kpcn.inference import heap
+
+def rss_mb():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+
+base = rss_mb()
+with heap.reuse_heap():
+    t = torch.empty(48 << 18)
+    t.fill_(1.0)
+    del t
+print(rss_mb() - base)  # kept for the next call
+r, w = os.pipe()
+if os.fork() == 0:  # the child has no timer thread: the kept memory must be given back at the fork
+    os.write(w, f"{rss_mb() - base} {heap._raised}".encode())
+    os._exit(0)
+os.wait()
+print(os.read(r, 100).decode())
+"""
+
+
+def test_a_forked_child_gives_the_kept_memory_back():
+    env = {**os.environ, "KPCN_HEAP_KEEP_S": "30"}
+    out = subprocess.run([sys.executable, "-c", _HEAP_FORK_SCRIPT], capture_output=True, text=True, check=True,
+                         env=env).stdout.split()
+    kept, child, raised = float(out[0]), float(out[1]), out[2]
+    assert kept > 40, f"memory not kept after the call: +{kept:.0f} MB"
+    assert child < 16 and raised == "False", f"the forked child kept +{child:.0f} MB (thresholds raised: {raised})"
+
+
 def test_bench_train_and_denoise_compare_precisions(capsys):
     """``--precisions float32 bfloat16``: one row per config and dtype, in one run; a dtype the model lacks or
     an unknown name is refused."""

@@ -139,6 +139,19 @@ def _release_if_idle() -> None:
             _release(_glibc())
 
 
+def _after_fork_in_child() -> None:
+    """A child forked while memory was kept has no timer thread to give it back: give it back now."""
+    global _lock, _timer, _depth
+    _lock = threading.Lock()  # the parent's may have been held by another thread at the fork
+    _timer, _depth = None, 0
+    if _raised and _libc:
+        _release(_libc)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
 def release_heap() -> None:
     """Give the memory kept after the last call back now (no waiting for :data:`KEEP_SECONDS`); a no-op during a
     call, off glibc, or when nothing is kept."""
