@@ -12,8 +12,10 @@ Command line: ``kpcn-denoise in.exr -o out.exr`` (or ``python -m kpcn.inference`
 Modules: :mod:`.weights` (which model a call means), :mod:`.tiling` (aligned
 tiles with a halo), :mod:`.pipeline` (one frame, end to end), :mod:`.paths`
 (which file a path names: no output ever replaces an input, for the API and the
-CLI alike), :mod:`.cli`.
+CLI alike), :mod:`.heap` (memory reused within and between calls; :func:`release_heap` gives it back
+at once), :mod:`.cli`.
 """
+from .heap import release_heap
 from .pipeline import PASSTHROUGH_REL_STD, denoise, denoise_result
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .tiling import Tile, plan_tiles, tile_size
@@ -35,4 +37,5 @@ __all__ = [
     "plan_tiles",
     "tile_size",
     "peak_rss_mb",
+    "release_heap",
 ]
