@@ -86,6 +86,21 @@ def _denoise_model_spec(name: str) -> tuple[str, dict | None, str]:
     raise ValueError(f"unknown model config {name!r}: no configs/{name}.yaml and not one of {sorted(_DENOISE_FALLBACK_MODELS)}")
 
 
+def _bench_model(model_name: str, model_kw: dict | None):
+    """The model a :func:`_denoise_model_spec` names: shipped weights (``model_kw`` None), else the config with
+    random-init weights (seed 0)."""
+    import torch
+
+    if model_kw is None:
+        from kpcn.inference import load_model
+
+        return load_model(model_name, "cpu")
+    from kpcn.models import create_model
+
+    torch.manual_seed(0)
+    return create_model(model_name, **model_kw).eval()
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     """``"256"`` -> (256, 256); ``"1920x1080"`` -> (1920, 1080), as (width, height)."""
     parts = text.lower().split("x")
@@ -129,15 +144,8 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         pyoidn.denoise(color[s].copy(), albedo[s].copy(), normal[s].copy(), hdr=True, quality="high")
     else:
         from kpcn.inference import denoise_result
-        from kpcn.models import create_model
 
-        torch.manual_seed(0)
-        if model_kw is None:  # shipped weights
-            from kpcn.inference import load_model
-
-            model = load_model(model_name, "cpu")
-        else:
-            model = create_model(model_name, **model_kw).eval()
+        model = _bench_model(model_name, model_kw)
         from kpcn.models.cost import macs_per_pixel
 
         extra["macs_per_px"] = macs_per_pixel(model)
@@ -327,7 +335,7 @@ def bench_denoise(argv: list[str]) -> int:
 
     ok = [r for r in results if r.get("status") == "ok"]
     print(f"\ndenoise benchmark: scene {args.scene} at {args.spp} spp (rendered with Mitsuba at each size), kpcn tile {tile}, "
-          f"random-init weights (but shipped ones), {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
+          f"configs with random-init weights, {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
     for name in args.models:
         model_name, kw, origin = specs[name]
         print(f"  {name}: {origin}" if kw is None else f"  {name}: {model_name} {kw} (from {origin})")

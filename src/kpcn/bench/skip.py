@@ -11,7 +11,7 @@ import statistics
 import sys
 import time
 
-from .denoise import _denoise_model_spec, _loadavg
+from .denoise import _bench_model, _denoise_model_spec, _loadavg
 
 
 def bench_denoise_skip(args) -> int:
@@ -20,23 +20,16 @@ def bench_denoise_skip(args) -> int:
 
     from kpcn.inference import denoise_result
     from kpcn.io import Frame
-    from kpcn.models import create_model
     from kpcn.render import render_frame
 
     if args.threads:
         torch.set_num_threads(args.threads)
     name = args.models[0]
     model_name, kw, origin = _denoise_model_spec(name)
-    torch.manual_seed(0)
-    if kw is None:  # shipped weights
-        from kpcn.inference import load_model
-
-        model = load_model(model_name, "cpu")
-    else:
-        model = create_model(model_name, **kw).eval()
+    model = _bench_model(model_name, kw)
     w, h = args.sizes[0]
     tile = args.tile if args.tile_given else 64
-    print(f"denoise --skip: model {name} ({model_name} {kw}, from {origin}{', random init' if kw is not None else ''}), {w}x{h}, tile {tile}, "
+    print(f"denoise --skip: model {name} ({origin if kw is None else f'{model_name} {kw}, from {origin}, random init'}), {w}x{h}, tile {tile}, "
           f"{args.spp} spp, torch {torch.__version__}, {torch.get_num_threads()} threads; "
           f"full (skip=False) and skip (skip=True) timed alternately, {args.repeats} repeats, median seconds", flush=True)
     rows = []

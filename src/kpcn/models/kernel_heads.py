@@ -41,17 +41,17 @@ def _softmax_weights(z: torch.Tensor, s: float, inplace: bool = False) -> tuple[
     t = z if inplace else z.clone()
     if s > 80:
         return torch.softmax(bounded_logits_(t, s), dim=1).contiguous(), None
-    # exp(s tanh(z / s)) = 2 ** (log2(e) (2s sigmoid(2z / s) - s)): PyTorch's CPU exp2 is about 3x faster than its exp
-    a = 2.0 * s * _LOG2_E
-    t = t.mul_(2.0 / s).sigmoid_().mul_(a).sub_(0.5 * a).exp2_()
+    # exp(s tanh(z / s)) = 2 ** (log2(e) s tanh(z / s)): PyTorch's CPU exp2 is about 3x faster than its exp
+    t = bounded_logits_(t, s, scale=_LOG2_E).exp2_()
     return t, t.sum(dim=1, keepdim=True)
 
 
-def bounded_logits_(z: torch.Tensor, s: float) -> torch.Tensor:
-    """``s * tanh(z / s)`` in place, computed as ``2s * sigmoid(2z / s) - s`` (the same function: ``tanh(x) =
-    2 sigmoid(2x) - 1``): PyTorch's CPU sigmoid is about 10x faster than its tanh, which was a fifth of a 1080p
-    denoise (``python -m kpcn.bench denoise``; docs/measured.md). Inference only (no autograd)."""
-    return z.mul_(2.0 / s).sigmoid_().mul_(2.0 * s).sub_(s)
+def bounded_logits_(z: torch.Tensor, s: float, scale: float = 1.0) -> torch.Tensor:
+    """``scale * s * tanh(z / s)`` in place, computed as ``scale * (2s * sigmoid(2z / s) - s)`` (the same function:
+    ``tanh(x) = 2 sigmoid(2x) - 1``): PyTorch's CPU sigmoid is about 10x faster than its tanh, which was a fifth of
+    a 1080p denoise (``python -m kpcn.bench denoise``; docs/measured.md). Inference only (no autograd)."""
+    a = 2.0 * s * scale
+    return z.mul_(2.0 / s).sigmoid_().mul_(a).sub_(0.5 * a)
 
 
 @dataclass(frozen=True)
