@@ -219,3 +219,24 @@ def test_store_and_workers_config_keys(tiny_dataset, tmp_path):
     blocker.write_text("")
     with pytest.raises(ConfigError, match="data.store: cannot create the patch store"):
         st.prepare(read_manifest(tiny_dataset)[:1], SPEC, blocker / "store")
+
+
+def test_entries_built_by_worker_processes_equal_those_built_in_process(data, tmp_path):
+    """``prepare(workers=2)`` (spawned processes) writes the same arrays and records as the serial build, and the
+    result is trusted by a later serial call; a spec the registry cannot rebuild by name is built in process."""
+    pairs = read_manifest(data)
+    serial = st.prepare(pairs, SPEC, tmp_path / "one", workers=1)
+    parallel = st.prepare(pairs, SPEC, tmp_path / "two", workers=2)
+    assert parallel.built == serial.built == list(range(len(pairs)))
+    for a, b in zip(serial.entries, parallel.entries, strict=True):
+        assert a.path.name == b.path.name
+        for name in ("half.npy", "full.npy", "importance.npy"):
+            assert (a.path / name).read_bytes() == (b.path / name).read_bytes(), name
+        ja, jb = (json.loads((e.path / "entry.json").read_text()) for e in (a, b))
+        assert ja == jb
+    assert st.prepare(pairs, SPEC, tmp_path / "two", workers=2).built == []
+    assert st._prepare_workers(None, st.PARALLEL_MIN_FRAMES - 1, SPEC) == 1
+    assert st._prepare_workers(8, 3, SPEC) == 3
+    assert st._prepare_workers(8, 30, dataclasses.replace(SPEC)) == 1  # not the registered object
+    with pytest.raises(ConfigError, match="data.prepare_workers: must be >= 1"):
+        load_config(RunConfig, None, ["data.prepare_workers=0"])

@@ -205,6 +205,7 @@ class PatchDataset(Dataset):
         spec: InputSpec | str = DEFAULT_SPEC,
         store: str | Path | None = None,
         progress: bool = False,
+        store_workers: int | None = None,
     ):
         if sampling not in ("importance", "uniform"):
             raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
@@ -220,7 +221,8 @@ class PatchDataset(Dataset):
         if store is not None:
             from .store import open_store
 
-            self.store = open_store(self.pairs, self.spec, store, importance=sampling == "importance", progress=progress)
+            self.store = open_store(self.pairs, self.spec, store, importance=sampling == "importance", progress=progress,
+                                    workers=store_workers)
             self.sizes = list(self.store.sizes)
         else:
             for p in self.pairs:

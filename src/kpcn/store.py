@@ -269,8 +269,12 @@ class Prepared:
     built: list[int]  #: indices of the pairs preprocessed by this call (missing, stale or damaged entries)
 
 
-def prepare(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, progress: bool = False) -> Prepared:
+def prepare(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, progress: bool = False,
+            workers: int | None = None) -> Prepared:
     """Make sure every pair has a trusted entry in ``store_dir``; (re)build only those that do not.
+
+    ``workers``: processes that build the missing entries (each with one torch thread); None: one per core (at
+    most 16) when at least :data:`PARALLEL_MIN_FRAMES` are missing, else this process alone.
 
     Raises:
         StoreError: ``store_dir`` cannot be created.
@@ -294,9 +298,49 @@ def prepare(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike
             log.info("patch store %s: preprocessing %d of %d frames", store_dir, len(stale), len(pairs))
         from tqdm import tqdm
 
-        for i, fp in tqdm(stale, desc="patch store", disable=not progress, dynamic_ncols=True):
-            entries[i] = build_entry(pairs[i], spec, store_dir / entry_name(pairs[i], store_dir), fp)
+        jobs = [(pairs[i], store_dir / entry_name(pairs[i], store_dir), fp) for i, fp in stale]
+        n = _prepare_workers(workers, len(stale), spec)
+        if n > 1:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+
+            # spawned (not forked) processes: the parent's OpenMP threads may not survive a fork
+            with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_one_thread) as pool:
+                done = pool.map(_build_named, [(p, spec.name, folder, fp) for p, folder, fp in jobs])
+                for (i, _), entry in zip(stale, tqdm(done, total=len(stale), desc="patch store",
+                                                     disable=not progress, dynamic_ncols=True)):
+                    entries[i] = entry
+        else:
+            for (i, _), (p, folder, fp) in zip(stale, tqdm(jobs, desc="patch store", disable=not progress,
+                                                           dynamic_ncols=True)):
+                entries[i] = build_entry(p, spec, folder, fp)
     return Prepared(entries, [i for i, _ in stale])
+
+
+#: fewer missing entries than this are built in the calling process (starting workers costs seconds)
+PARALLEL_MIN_FRAMES = 16
+
+
+def _prepare_workers(workers: int | None, n_stale: int, spec: InputSpec) -> int:
+    """How many processes build ``n_stale`` entries: ``workers``, or (None) one per core up to 16 when there are
+    at least :data:`PARALLEL_MIN_FRAMES`; one for a spec the registry does not give back by name."""
+    if workers is None:
+        workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, 16)
+        workers = workers if n_stale >= PARALLEL_MIN_FRAMES else 1
+    try:
+        named = get_input_spec(spec.name) is spec
+    except Exception:  # an unregistered spec: a worker could not rebuild it from its name
+        named = False
+    return max(1, min(int(workers), n_stale)) if named else 1
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _build_named(job) -> Entry:
+    pair, spec_name, folder, fp = job
+    return build_entry(pair, get_input_spec(spec_name), folder, fp)
 
 
 def _max_open() -> int:
@@ -370,7 +414,7 @@ class StoreFrames:
 
 
 def open_store(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, importance: bool = False,
-               progress: bool = False) -> StoreFrames:
+               progress: bool = False, workers: int | None = None) -> StoreFrames:
     """:func:`prepare` the store, then a :class:`StoreFrames` over it.
 
     ``importance``: every frame must have an importance map (its noisy render has
@@ -380,7 +424,7 @@ def open_store(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathL
     from .data import read_pair
 
     spec = get_input_spec(spec)
-    prepared = prepare(pairs, spec, store_dir, progress)
+    prepared = prepare(pairs, spec, store_dir, progress, workers)
     if importance:
         for p, e in zip(pairs, prepared.entries):
             if e.importance is None:

@@ -157,7 +157,8 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         # the patch store (data.store): every rank prepares it, one at a time (a lock), so rank 0 builds
         # what is missing or stale and the others find it done
         ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling,
-                          cfg.train.seed, spec=spec, store=store_dir(cfg, spec), progress=progress and d.main)
+                          cfg.train.seed, spec=spec, store=store_dir(cfg, spec), progress=progress and d.main,
+                          store_workers=cfg.data.prepare_workers)
         per_rank = max(1, cfg.train.batch_size // d.world)
         if len(ds) // d.world < per_rank:
             raise ConfigError(f"train.batch_size: {cfg.train.batch_size} is more than the {len(ds)} training "

@@ -70,6 +70,9 @@ class DataConfig:
     #: DataLoader worker processes that crop the patches (0: the training process itself); None: 2 when
     #: training on CUDA, 0 on the CPU (there workers measured slower: `python -m kpcn.bench data`)
     workers: int | None = None
+    #: processes that build the patch store's missing entries (one torch thread each); None: one per core, at most
+    #: 16, when 16 or more frames are missing (fewer are built in the training process)
+    prepare_workers: int | None = None
     # the built-in default data set, rendered when `root` has no manifest and `render_if_missing`
     render_if_missing: bool = True
     render_scenes: int = 24
@@ -81,7 +84,7 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.sampling not in ("importance", "uniform"):
             raise ConfigError(f"data.sampling: expected 'importance' or 'uniform', got {self.sampling!r}")
-        for key in ("patch_size", "patches_per_frame", "render_scenes", "converged_weight"):
+        for key in ("patch_size", "patches_per_frame", "render_scenes", "converged_weight", "prepare_workers"):
             _at_least("data", self, key, 1)
         for key in ("val_scenes", "render_first_seed", "workers", "converged_min_ref_spp"):
             _at_least("data", self, key, 0)
