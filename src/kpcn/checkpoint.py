@@ -166,9 +166,10 @@ def rng_state() -> dict:
 
 
 def set_rng_state(state: Mapping) -> None:
-    torch.set_rng_state(state["torch"])
+    # a checkpoint loaded onto a GPU (map_location) carries these tensors there: the RNGs take CPU ones
+    torch.set_rng_state(state["torch"].cpu())
     n = state["numpy"]
-    np.random.set_state((n["kind"], n["key"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached_gaussian"]))
+    np.random.set_state((n["kind"], n["key"].cpu().numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached_gaussian"]))
     version, internal, gauss_next = state["python"]
     random.setstate((version, tuple(internal), gauss_next))
 

@@ -40,7 +40,9 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     if cfg.train.init_extend:
         groups = model.channel_groups()
         source_groups = create_model(**record["hparams"]).channel_groups() if groups else None
-        state = _extend(state, model.state_dict(), path, groups, source_groups)
+        # on the CPU, where the file was read: the model may already sit on a GPU
+        state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
+                        source_groups)
     model.load_state_dict(state)
     return str(path)
 
