@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
+# scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
+# U-Net on them until BUDGET seconds after the start. The step count follows the measured pace: a probe run to
+# step PROBE, then --resume with the fitted train.stage2_steps (the one-cycle schedule ends in time). Weights,
+# config and logs go to $OUT (model.safetensors, or model_partial.safetensors from the last checkpoint).
+#
+# The machine has PyTorch but not Mitsuba or OpenEXR: carry them as .gpu/site.tar.xz, built here once from the
+# CPython 3.12 wheels (pip download --no-deps --only-binary=:all: --python-version 3.12 --platform
+# manylinux_2_28_x86_64 mitsuba==3.9.1 drjit==1.5.0 OpenEXR==3.5.3; unzip them into one folder, drop the
+# variants other than cuda_ad_rgb, the headers and the volume/curve/polarised plugins: 29 MB as xz), e.g.
+#   BUDGET=520 RENDER_S=170 bash scripts/gpu_train.sh        (device run, carry: [".gpu"])
+# Locally, as a dry run: PY=.venv/bin/python NO_SITE=1 KPCN_MITSUBA_VARIANT=llvm_ad_rgb RES=48 SPP="2 4" REF=16
+#   PROCS=2 RENDER_S=30 BUDGET=300 BATCH=2 PATCH=32 W=/tmp/gt bash scripts/gpu_train.sh
+set -u
+T0=$(date +%s)
+BUDGET=${BUDGET:-540}; RENDER_S=${RENDER_S:-180}; PROBE=${PROBE:-200}
+PY=${PY:-python3}; RES=${RES:-256}; SPP=${SPP:-"2 4 8 16 32 64 128 256 512"}; REF=${REF:-2048}
+PROCS=${PROCS:-16}; FIRST=${FIRST:-50001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
+el() { echo $(( $(date +%s) - T0 )); }
+mkdir -p "$W" "$OUT"
+if [ -f .gpu/site.tar.xz ] && [ -z "${NO_SITE:-}" ]; then
+  mkdir -p /tmp/site && tar xJf .gpu/site.tar.xz -C /tmp/site || exit 3
+  export PYTHONPATH=/tmp/site:$PWD/src
+fi
+export PYTHONUNBUFFERED=1
+$PY - <<'EOF' || exit 4
+import os, mitsuba as mi, torch
+mi.set_variant(os.environ.get("KPCN_MITSUBA_VARIANT", "cuda_ad_rgb"))
+import OpenEXR, kpcn
+print("mitsuba", mi.__version__, mi.variant(), "torch", torch.__version__,
+      torch.cuda.get_device_name() if torch.cuda.is_available() else "no cuda", flush=True)
+EOF
+echo "setup done at $(el) s"
+
+# 1. render: PROCS loops, worker i takes seeds FIRST+i, FIRST+i+PROCS, ... and starts none after RENDER_S
+export KPCN_MITSUBA_VARIANT=${KPCN_MITSUBA_VARIANT:-cuda_ad_rgb} OMP_NUM_THREADS=1
+mkdir -p "$W/d"
+for i in $(seq 0 $((PROCS - 1))); do
+  ( s=$((FIRST + i))
+    while [ $(( $(date +%s) - T0 )) -lt "$RENDER_S" ]; do
+      $PY -m kpcn.render dataset --out "$W/d/s$s" --scenes 1 --first-seed $s --spp $SPP --ref-spp $REF \
+          --resolution $RES $RES >>"$W/d/render_$i.log" 2>&1 || echo "render $s failed" >>"$W/d/failed.log"
+      s=$((s + PROCS))
+    done ) &
+done
+wait
+unset OMP_NUM_THREADS
+echo "render done at $(el) s"; cat "$W/d/failed.log" 2>/dev/null | head -3
+
+# 2. the config: every complete scene, the first held out for validation
+$PY - "$W" <<'EOF' || exit 5
+import os, sys, yaml
+from pathlib import Path
+from kpcn.render import dataset_status
+w = Path(sys.argv[1])
+roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
+print(len(roots), "complete scenes", flush=True)
+base = yaml.safe_load(open("configs/unet_wide.yaml"))
+base["model"]["widths"] = [64, 96, 128, 160]
+d = base["data"]
+d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
+         patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)))
+base["train"].update(init="unet_kpcn:wide", init_extend=True, batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=2.0e-4, threads=None,
+                     val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
+yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)
+EOF
+cp "$W/cfg.yaml" "$OUT/cfg.yaml"
+
+# 3. probe: train to step PROBE, measure the pace between checkpoints 100 and PROBE
+TR="$PY -m kpcn.train -c $W/cfg.yaml --name g --results-dir $W/r --no-progress"
+CK=$W/r/g/checkpoints
+rm -rf "$W/r/g"  # a previous call's run on a machine still warm: its checkpoints would end the probe at once
+$TR --overwrite >"$W/train1.log" 2>&1 &
+P=$!
+while [ ! -f "$CK/step_$PROBE.pt" ]; do
+  kill -0 $P 2>/dev/null || { echo "probe run ended early"; tail -20 "$W/train1.log"; cp "$W/train1.log" "$OUT/"; exit 6; }
+  [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 60)) ] && { echo "probe too slow: stopping"; SLOW=1; break; }
+  sleep 0.5
+done
+sleep 0.5
+kill $P; wait $P 2>/dev/null
+if [ -n "${SLOW:-}" ]; then NSTEPS=0; else
+NSTEPS=$($PY -c "
+import os, time; t100, t2 = (os.path.getmtime('$CK/step_%d.pt' % s) for s in (100, $PROBE))
+pace = (t2 - t100) / ($PROBE - 100)
+print(int($PROBE + max(0, $T0 + $BUDGET - time.time() - 40) / pace))")
+echo "pace $($PY -c "import os; print((os.path.getmtime('$CK/step_$PROBE.pt') - os.path.getmtime('$CK/step_100.pt')) / ($PROBE - 100))") s/step"
+echo "probe: step $PROBE at $(el) s, $NSTEPS steps in all"
+fi
+
+# 4. resume with the fitted schedule; stop at the deadline whatever happens
+P=
+[ "$NSTEPS" -gt 0 ] && { $TR --resume --set train.stage2_steps=$NSTEPS >"$W/train2.log" 2>&1 & P=$!; }
+while [ -n "$P" ] && kill -0 $P 2>/dev/null; do
+  [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 12)) ] && { echo "deadline: stopping the run"; kill $P; break; }
+  sleep 1
+done
+[ -n "$P" ] && wait $P 2>/dev/null
+echo "training ended at $(el) s"
+if [ -f "$W/r/g/model.safetensors" ]; then
+  cp "$W/r/g/model.safetensors" "$OUT/model.safetensors"
+else  # the last checkpoint's weights
+  $PY -c "
+import sys; from kpcn.checkpoint import load_model_file, save_weights
+save_weights('$OUT/model_partial.safetensors', load_model_file('$CK/latest.pt'))"
+fi
+cp "$W/r/g/metrics.jsonl" "$W/train1.log" "$W/train2.log" "$OUT/" 2>/dev/null
+ls "$W/d" | grep -c '^s' >"$OUT/scenes.txt"
+echo "all done at $(el) s"; tail -5 "$W/train2.log"
