@@ -219,7 +219,7 @@ class PatchDataset(Dataset):
         self.spec = get_input_spec(spec)
         self.store = None
         if store is not None:
-            from .store import open_store
+            from .store_frames import open_store
 
             self.store = open_store(self.pairs, self.spec, store, importance=sampling == "importance", progress=progress,
                                     workers=store_workers)
@@ -253,7 +253,7 @@ class PatchDataset(Dataset):
 
     def __getstate__(self) -> dict:
         # for DataLoader workers started by spawn: the spec (it holds functions) travels by its registered
-        # name, the store without its memory maps (kpcn.store.StoreFrames reopens them in the worker)
+        # name, the store without its memory maps (kpcn.store_frames.StoreFrames reopens them in the worker)
         state = dict(self.__dict__)
         state["spec"] = self.spec.name
         return state

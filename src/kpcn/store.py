@@ -3,7 +3,8 @@
 :class:`kpcn.data.PatchDataset` built with ``store=<folder>`` crops its patches
 from here instead of holding every frame in memory, so the training set may be
 larger than the RAM. :func:`prepare` builds the entries that are missing or
-stale (and only those); :class:`StoreFrames` reads crops.
+stale (and only those); :class:`kpcn.store_frames.StoreFrames` reads crops
+(:func:`kpcn.store_frames.open_store` does both).
 
 Layout (default folder ``<data root>/.store/<spec name>/``, :func:`default_store_dir`)::
 
@@ -39,13 +40,14 @@ read.
 """
 from __future__ import annotations
 
+import concurrent.futures as cf
 import contextlib
 import hashlib
 import json
 import logging
+import multiprocessing as mp
 import os
 import re
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -59,8 +61,8 @@ from .io import atomic_write
 
 log = logging.getLogger("kpcn.store")
 
-__all__ = ["STORE_FORMAT", "HALF_RTOL", "HALF_ATOL", "StoreError", "Entry", "StoreFrames", "default_store_dir",
-           "float32_channels", "fingerprint", "entry_name", "load_entry", "build_entry", "prepare", "open_store"]
+__all__ = ["STORE_FORMAT", "HALF_RTOL", "HALF_ATOL", "StoreError", "Entry", "Prepared", "default_store_dir",
+           "float32_channels", "fingerprint", "entry_name", "load_entry", "build_entry", "prepare"]
 
 #: Version of the layout and of the preprocessing; entries of another version are rebuilt.
 #: Bump it when the features an input spec builds change.
@@ -70,9 +72,6 @@ HALF_MAX = 65504.0
 #: the float16 round trip: |stored - x| <= HALF_RTOL * |x| + HALF_ATOL (round to nearest, 11-bit significand)
 HALF_RTOL = 2.0 ** -11
 HALF_ATOL = 2.0 ** -25
-#: frames whose memory maps a process keeps open at most (each map holds a file descriptor);
-#: None: an eighth of the process's file-descriptor limit (two maps a frame: a quarter of it)
-MAX_OPEN: int | None = None
 ENTRY = "entry.json"
 
 
@@ -298,22 +297,15 @@ def prepare(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike
             log.info("patch store %s: preprocessing %d of %d frames", store_dir, len(stale), len(pairs))
         from tqdm import tqdm
 
-        jobs = [(pairs[i], store_dir / entry_name(pairs[i], store_dir), fp) for i, fp in stale]
+        jobs = [(pairs[i], spec.name, store_dir / entry_name(pairs[i], store_dir), fp) for i, fp in stale]
         n = _prepare_workers(workers, len(stale), spec)
-        if n > 1:
-            import concurrent.futures as cf
-            import multiprocessing as mp
-
-            # spawned (not forked) processes: the parent's OpenMP threads may not survive a fork
-            with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_one_thread) as pool:
-                done = pool.map(_build_named, [(p, spec.name, folder, fp) for p, folder, fp in jobs])
-                for (i, _), entry in zip(stale, tqdm(done, total=len(stale), desc="patch store",
-                                                     disable=not progress, dynamic_ncols=True)):
-                    entries[i] = entry
-        else:
-            for (i, _), (p, folder, fp) in zip(stale, tqdm(jobs, desc="patch store", disable=not progress,
-                                                           dynamic_ncols=True)):
-                entries[i] = build_entry(p, spec, folder, fp)
+        # spawned (not forked) processes: the parent's OpenMP threads may not survive a fork
+        with (cf.ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_one_thread) if n > 1
+              else contextlib.nullcontext()) as pool:
+            done = pool.map(_build_named, jobs) if pool else (build_entry(p, spec, f, fp) for p, _, f, fp in jobs)
+            for (i, _), entry in zip(stale, tqdm(done, total=len(stale), desc="patch store", disable=not progress,
+                                                 dynamic_ncols=True)):
+                entries[i] = entry
     return Prepared(entries, [i for i, _ in stale])
 
 
@@ -329,7 +321,7 @@ def _prepare_workers(workers: int | None, n_stale: int, spec: InputSpec) -> int:
         workers = workers if n_stale >= PARALLEL_MIN_FRAMES else 1
     try:
         named = get_input_spec(spec.name) is spec
-    except Exception:  # an unregistered spec: a worker could not rebuild it from its name
+    except ValueError:  # an unregistered spec: a worker could not rebuild it from its name
         named = False
     return max(1, min(int(workers), n_stale)) if named else 1
 
@@ -341,92 +333,3 @@ def _one_thread() -> None:
 def _build_named(job) -> Entry:
     pair, spec_name, folder, fp = job
     return build_entry(pair, get_input_spec(spec_name), folder, fp)
-
-
-def _max_open() -> int:
-    if MAX_OPEN is not None:
-        return MAX_OPEN
-    try:
-        import resource
-
-        soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
-        soft = 65536 if soft == resource.RLIM_INFINITY else soft
-    except (ImportError, OSError, ValueError):
-        soft = 1024
-    return max(16, soft // 8)
-
-
-class StoreFrames:
-    """Crops of the frames of a store, read through memory maps.
-
-    The maps are opened on first use in each process (a DataLoader worker opens
-    its own; pickling drops them) and stay open, the least recently used frames
-    closed beyond :data:`MAX_OPEN` (reopening costs the map and its page faults
-    again: with the usual limit of 1024 descriptors, 128 frames stay open).
-    """
-
-    def __init__(self, entries: Sequence[Entry]):
-        self.entries = list(entries)
-        self.sizes = [e.shape for e in self.entries]
-        self._open: OrderedDict = OrderedDict()
-        self._pid: int | None = None
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["_open"], state["_pid"] = OrderedDict(), None
-        return state
-
-    def _arrays(self, i: int) -> dict[str, np.ndarray]:
-        if self._pid != os.getpid():  # a forked worker does not use its parent's maps
-            self._open, self._pid = OrderedDict(), os.getpid()
-        arrays = self._open.get(i)
-        if arrays is None:
-            e = self.entries[i]
-            arrays = {g: np.load(e.path / info["file"], mmap_mode="r") for g, info in e.groups.items()}
-            for g, info in e.groups.items():  # rebuilt by another process since this one checked it?
-                if arrays[g].shape != (*e.shape, info["channels"]) or arrays[g].dtype != np.dtype(info["dtype"]):
-                    raise RuntimeError(f"patch store entry {e.path} changed while in use ({g}.npy is now "
-                                       f"{arrays[g].dtype}{arrays[g].shape}); start the run again")
-            self._open[i] = arrays
-            while len(self._open) > _max_open():
-                self._open.popitem(last=False)
-        else:
-            self._open.move_to_end(i)
-        return arrays
-
-    def crop(self, i: int, y: int, x: int, size: int) -> dict[str, torch.Tensor]:
-        """Float32 ``(C, h, w)`` tensors of frame ``i`` at rows ``y:y+size``, columns ``x:x+size`` (clipped)."""
-        # each group's crop: rows copied out of the map, then converted and made channel-first in one pass
-        crops = {g: torch.from_numpy(np.array(a[y : y + size, x : x + size], order="C")).permute(2, 0, 1)
-                 .to(torch.float32, memory_format=torch.contiguous_format) for g, a in self._arrays(i).items()}
-        out = {}
-        for key, runs in self.entries[i].keys.items():
-            if len(runs) == 1:  # one run: a view of the group's crop
-                g, a, b, _ = runs[0]
-                out[key] = crops[g][a:b]
-            else:  # runs are in the tensor's channel order
-                out[key] = torch.cat([crops[g][a:b] for g, a, b, _ in runs])
-        return out
-
-    def importance(self, i: int) -> np.ndarray | None:
-        e = self.entries[i]
-        return np.load(e.path / e.importance) if e.importance else None
-
-
-def open_store(pairs: Sequence, spec: InputSpec | str, store_dir: str | os.PathLike, importance: bool = False,
-               progress: bool = False, workers: int | None = None) -> StoreFrames:
-    """:func:`prepare` the store, then a :class:`StoreFrames` over it.
-
-    ``importance``: every frame must have an importance map (its noisy render has
-    colour and normal variances); the error of a frame without is the reader's
-    :class:`~kpcn.io.MissingLayerError`, as with the frames kept in memory.
-    """
-    from .data import read_pair
-
-    spec = get_input_spec(spec)
-    prepared = prepare(pairs, spec, store_dir, progress, workers)
-    if importance:
-        for p, e in zip(pairs, prepared.entries):
-            if e.importance is None:
-                read_pair(p, spec)[0].require(("colorVariance", "normalVariance"))
-    return StoreFrames(prepared.entries)
