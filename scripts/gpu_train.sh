@@ -81,12 +81,11 @@ done
 sleep 0.5
 kill $P; wait $P 2>/dev/null
 if [ -n "${SLOW:-}" ]; then NSTEPS=0; else
-NSTEPS=$($PY -c "
+read -r PACE NSTEPS < <($PY -c "
 import os, time; t100, t2 = (os.path.getmtime('$CK/step_%d.pt' % s) for s in (100, $PROBE))
 pace = (t2 - t100) / ($PROBE - 100)
-print(int($PROBE + max(0, $T0 + $BUDGET - time.time() - 40) / pace))")
-echo "pace $($PY -c "import os; print((os.path.getmtime('$CK/step_$PROBE.pt') - os.path.getmtime('$CK/step_100.pt')) / ($PROBE - 100))") s/step"
-echo "probe: step $PROBE at $(el) s, $NSTEPS steps in all"
+print(pace, int($PROBE + max(0, $T0 + $BUDGET - time.time() - 40) / pace))")
+echo "probe: step $PROBE at $(el) s, $PACE s/step, $NSTEPS steps in all"
 fi
 
 # 4. resume with the fitted schedule; stop at the deadline whatever happens
