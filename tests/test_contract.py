@@ -44,7 +44,8 @@ def _variants():
 OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precision_gate": True},
                             {"input_spec": "color_albedo_normal_noise", "demodulate": True}],
                    "unet_kpcn": [{"kernel_scales": 3}, {"kernel_scales": 2, "input_spec": "color_albedo_normal"},
-                                 {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1}]}
+                                 {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)

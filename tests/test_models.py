@@ -366,3 +366,34 @@ def test_unet_guide_kernel_must_be_odd_and_reaches_no_further_than_the_radius_sa
     radius = {gk: create_model("unet_kpcn", stem="half", kernel_scales=2, guide_kernel=gk).receptive_radius
               for gk in (1, 3, 9)}
     assert radius[1] == radius[3] and radius[9] == radius[1] + 1
+
+
+def test_band_gain_scales_the_high_band_of_each_blended_level():
+    """``combine_levels`` with gains: β = 1 is the blend without them; β = 0 at the finest level leaves only the
+    blend of its low band with the coarse result (so the output is smooth at the 2x2 scale: it equals
+    ``U(D(o))``'s neighbourhood average there); a constant stays constant for any gains; float64 gradcheck."""
+    from kpcn.models.kernel_heads import blend_weights, combine_levels
+    from kpcn.models.layers import pool2, upsample2
+
+    g = torch.Generator().manual_seed(3)
+    f = [torch.rand(1, 3, 16 >> lv, 16 >> lv, generator=g, dtype=torch.float64) for lv in range(3)]
+    alphas = [torch.rand(1, 1, 16 >> lv, 16 >> lv, generator=g, dtype=torch.float64) for lv in range(2)] + [None]
+    ones = [torch.ones_like(a) for a in alphas[:2]] + [None]
+    torch.testing.assert_close(combine_levels(f, alphas, ones), combine_levels(f, alphas), rtol=0, atol=1e-12)
+    zero0 = [torch.zeros_like(alphas[0]), ones[1], None]
+    out = combine_levels(f, alphas, zero0)
+    coarse = combine_levels(f[1:], alphas[1:])
+    expect = (1 - alphas[0]) * upsample2(pool2(f[0])) + alphas[0] * upsample2(coarse)
+    torch.testing.assert_close(out, expect, rtol=0, atol=1e-12)
+    assert (out - combine_levels(f, alphas)).abs().max() > 1e-3
+    const = [torch.full_like(x, 0.7) for x in f]
+    gains = [2 * torch.rand(a.shape, generator=g, dtype=torch.float64) for a in alphas[:2]] + [None]
+    torch.testing.assert_close(combine_levels(const, alphas, gains), const[0], rtol=0, atol=1e-12)
+    a, b = blend_weights(torch.zeros(1, 2, 4, 4))
+    assert torch.equal(a, torch.full_like(a, 0.5)) and torch.equal(b, torch.ones_like(b))
+    assert blend_weights(torch.zeros(1, 1, 4, 4))[1] is None and blend_weights(torch.zeros(1, 0, 4, 4)) == (None, None)
+    ins = [x.clone().requires_grad_(True) for x in f + gains[:2]]
+    assert torch.autograd.gradcheck(lambda f0, f1, f2, b0, b1: combine_levels([f0, f1, f2], alphas, [b0, b1, None]),
+                                    ins)
+    with pytest.raises(ValueError, match="band_gain needs kernel_scales >= 2"):
+        create_model("unet_kpcn", band_gain=True)

@@ -59,7 +59,8 @@ SMALL = {
     "unet_kpcn": dict(widths=[8, 8, 12, 16], convs_per_level=1, kernel_size=5, summary_channels=4, out_init_gain=1.0),
 }
 #: options that change how a model reconstructs (Vogels et al.'s multi-scale kernels: not convex)
-OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_scales": 3}],
+OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_scales": 3},
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True}],
                    # kernels weighted by albedo ratios (not convex in the colour)
                    "kpcn": [{"input_spec": "color_albedo_normal_noise", "demodulate": True, "out_init_gain": 5.0}]}
 

@@ -343,6 +343,62 @@ def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
     assert not (tmp_path / "c").exists()
 
 
+def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
+    """``band_gain`` added to a trained U-Net with ``train.init_extend``: the new gain channels start at
+    β = 1 exactly, so the model denoises a real render as the file does; the gains are live (the loss has a
+    gradient on their zero weights), and a gain that is not 1 changes the output."""
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    unet = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
+                guide_channels=4, summary_channels=4, kernel_scales=3)
+
+    def ucfg(name, band_gain, **kw):
+        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
+        cfg.model = dict(unet, band_gain=band_gain)
+        return cfg
+
+    train(ucfg("a", False), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    # a file written before the field existed (its record lacks band_gain) holds its default: a config that
+    # states the default starts from it
+    import json
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+    with safe_open(str(src), "pt") as fh:
+        record, state = json.loads(fh.metadata()["kpcn"]), {k: fh.get_tensor(k) for k in fh.keys()}
+    del record["hparams"]["band_gain"]
+    older = tmp_path / "older.safetensors"
+    save_file(state, str(older), metadata={"kpcn": json.dumps(record)})
+    train(ucfg("a2", False, init=str(older)), progress=False)
+    with pytest.raises(ConfigError, match="band_gain"):  # not without saying so
+        train(ucfg("b", True, init=str(src)), progress=False)
+    train(ucfg("b", True, init=str(src), init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    plain, gained = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    head = gained.diffuse.head
+    assert head.out_channels == 3 * 3 + 2 and gained.diffuse.heads[0].out_channels == 3 * 3 + 2
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, gained, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    spec = gained.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+    with torch.no_grad():
+        ks = gained.diffuse.kernels(x)
+    assert ks.gains is not None and ks.gains[2] is None
+    torch.testing.assert_close(ks.gains[0], torch.ones_like(ks.gains[0]), rtol=0, atol=1e-6)
+    head.weight.requires_grad_(True)
+    gained.diffuse(x).square().mean().backward()
+    assert head.weight.grad[-1].abs().max() > 0  # the gain's row
+    with torch.no_grad():
+        head.bias[-1] = -3.0  # β = 2 sigmoid(-3) ≈ 0.095: level 0's high band mostly removed
+        c = gained.diffuse(x)
+        d = plain.diffuse(x)
+    assert (c - d).abs().max() > 1e-3
+
+
 def test_bfloat16_training_runs_and_is_refused_where_the_model_cannot(tiny_dataset, tmp_path):
     """``train.precision: bfloat16``: a U-Net trains (finite losses, float32 weights written); KPCN, whose
     layers only compute in float32, is refused before anything is written; an unknown name is a ConfigError."""

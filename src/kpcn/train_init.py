@@ -1,15 +1,16 @@
 """The weights a training run starts from: ``train.init`` (a weights file or a shipped ``model:tag``), and
 ``train.init_extend``, which lets the config's model extend the file's (more input channels, a precision gate,
-a demodulation weight, a coarser U-Net kernel level, wider U-Net levels) so that it starts from the file's
+a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains) so that it starts from the file's
 outputs."""
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import torch
 
 from .config import ConfigError, to_dict
-from .models.registry import create_model
+from .models.registry import create_model, model_config_class
 from .train_config import RunConfig
 
 __all__ = ["load_init"]
@@ -30,9 +31,11 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
-                        "guide_channels", "guide_kernel"} if cfg.train.init_extend else set())
-    mismatch = {k: (record["hparams"].get(k), v) for k, v in want.items()
-                if k not in free and record["hparams"].get(k) != v}
+                        "guide_channels", "guide_kernel", "band_gain"} if cfg.train.init_extend else set())
+    # a file written before a field existed holds that field's default
+    fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
+    old = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
+    mismatch = {k: (old.get(k), v) for k, v in want.items() if k not in free and old.get(k) != v}
     if record["model"] != want.get("name") or mismatch:
         raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
                           f"config's {want.get('name')} (file, config): {mismatch}")
@@ -56,9 +59,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
       with zero weights, so the widened model computes what the file's did.
     * Any other tensor that reads fewer input channels (dim 1) is zero-padded to the new ones (the last:
       a zero weight ignores them).
-    * A conv with more outputs (dim 0: the demodulation weight's channel, or the blending weight of a
-      U-Net kernel level that gains a coarser level) gets zero weights and the model's own initial bias
-      for them.
+    * A conv with more outputs (dim 0: the demodulation weight's channel, the blending weight of a
+      U-Net kernel level that gains a coarser level, or its high-band gain) gets zero weights and the
+      model's own initial bias for them (a gain's: 0, so ``β = 1``).
     * A conv weight with a smaller odd kernel (a 1x1 U-Net guide in a model whose guide is 3x3) becomes the
       centre taps of the model's kernel, zero elsewhere.
     * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes

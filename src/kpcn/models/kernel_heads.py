@@ -18,7 +18,7 @@ from torch import nn
 from ..ops.kernel_apply import KernelApply
 from .layers import conv1x1, pool2, upsample2
 
-__all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "combine_levels"]
+__all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels"]
 
 _LOG2_E = 1.4426950408889634
 
@@ -54,14 +54,26 @@ def bounded_logits_(z: torch.Tensor, s: float, scale: float = 1.0) -> torch.Tens
     return z.mul_(2.0 / s).sigmoid_().mul_(a).sub_(0.5 * a)
 
 
+def blend_weights(z: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """A kernel level's channels after its logits ``(B, 0..2, h, w)``: the blending weight ``α = sigmoid(z_0)`` and
+    the high-band gain ``β = 2 sigmoid(z_1)`` (``UNetConfig.band_gain``), each None where the level has none."""
+    n = z.shape[1]
+    alpha = torch.sigmoid(z[:, :1]) if n > 0 else None
+    gain = torch.sigmoid(z[:, 1:2]).mul(2.0) if n > 1 else None
+    return alpha, gain
+
+
 @dataclass(frozen=True)
 class MultiScaleKernels:
-    """Per-level kernels ``(B, k*k, H/2**l, W/2**l)`` and blending weights ``(B, 1, ...)`` (None at the coarsest),
+    """Per-level kernels ``(B, k*k, H/2**l, W/2**l)``, blending weights ``(B, 1, ...)`` (None at the coarsest) and
+    optional high-band gains,
     at the size padded to the alignment; ``size`` is the unpadded ``(H, W)``."""
 
     kernels: tuple[torch.Tensor, ...]
     alphas: tuple[torch.Tensor | None, ...]
     size: tuple[int, int]
+    #: per-level high-band gains ``(B, 1, ...)`` (``UNetConfig.band_gain``; None: every gain 1)
+    gains: tuple[torch.Tensor | None, ...] | None = None
 
 
 class MultiScaleApply(nn.Module):
@@ -82,15 +94,20 @@ class MultiScaleApply(nn.Module):
             if level:
                 level_colour = pool2(level_colour)
             filtered.append(self.apply_one(level_colour.contiguous(), k))
-        return combine_levels(filtered, ks.alphas)[..., :h, :w]
+        return combine_levels(filtered, ks.alphas, ks.gains)[..., :h, :w]
 
 
-def combine_levels(filtered, alphas) -> torch.Tensor:
-    """Coarse to fine, ``o_l = f_l + α_l · U(o_{l+1} - D(f_l))`` over filtered levels ``(B, 3, H/2**l, W/2**l)``."""
+def combine_levels(filtered, alphas, gains=None) -> torch.Tensor:
+    """Coarse to fine, ``o_l = f_l + α_l · U(o_{l+1} - D(f_l))`` over filtered levels ``(B, 3, H/2**l, W/2**l)``;
+    with a level's gain ``β_l`` (``gains``, None: 1) also ``- (1 - β_l) · (f_l - U(D(f_l)))``, its high band scaled."""
     out = filtered[-1]
     for level in range(len(filtered) - 2, -1, -1):
         f, alpha = filtered[level], alphas[level]
-        out = f + alpha * upsample2(out - pool2(f))
+        beta = gains[level] if gains is not None else None
+        df = pool2(f)
+        out = f + alpha * upsample2(out - df)
+        if beta is not None:
+            out = out - (1.0 - beta) * (f - upsample2(df))
     return out
 
 

@@ -34,7 +34,9 @@ filtered levels are combined coarse to fine::
     o_l = f_l - α_l · U(D(f_l)) + α_l · U(o_{l+1})
 
 (``D`` a 2×2 average pool, ``U`` bilinear 2× upsampling): ``α`` swaps the low
-frequencies of the fine result for the coarse one. A constant image stays
+frequencies of the fine result for the coarse one. With ``band_gain`` a level
+also predicts ``β = 2·sigmoid(z)`` and scales its high band ``f_l - U(D(f_l))``
+by it (the blend alone keeps that band whole: the grain a small kernel leaves). A constant image stays
 constant and a zero branch stays zero (each term is linear in the colour and
 every kernel sums to one), but the output is no longer a convex combination of
 input pixels. Light groups filtered with :meth:`UNetBranch.kernels` and
@@ -58,7 +60,7 @@ from torch import nn
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
-from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax
+from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax, blend_weights
 from .layers import Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
 from .registry import register_model, register_weights
 from .unet_config import UNetConfig
@@ -102,10 +104,12 @@ class UNetBranch(nn.Module):
         if off:
             gk = cfg.guide_kernel
             self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if gk == 1 else nn.Conv2d(c_in, cfg.guide_channels, gk)
-        self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), k * k + (1 if n > 1 else 0),
+        blend = 2 if cfg.band_gain else 1  # channels after the logits of a level that blends: α (and β)
+        self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), k * k + (blend if n > 1 else 0),
                                     GuidedHead if off else Conv1x1)
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
-        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (1 if lv < n - 1 else 0)) for lv in range(1, n))
+        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0))
+                                   for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
         #: the conv stack's dtype (None: float32); see :meth:`UNetKPCN.set_compute_dtype`
         self.compute_dtype: torch.dtype | None = None
@@ -245,13 +249,16 @@ class UNetBranch(nn.Module):
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
-        kernels, alphas = [], []
+        kernels, alphas, gains = [], [], []
         for level in range(self.cfg.kernel_scales):
             z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
-            alphas.append(torch.sigmoid(z[:, kk:]) if z.shape[1] > kk else None)
+            alpha, gain = blend_weights(z[:, kk:])
+            alphas.append(alpha)
+            gains.append(gain)
             kernels.append(_bounded_softmax(z[:, :kk], s))
             del z
-        return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in))
+        return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in),
+                                 tuple(gains) if self.cfg.band_gain else None)
 
 
 class UNetKPCN(DenoiserModel):

@@ -35,6 +35,11 @@ class UNetConfig:
         guide_kernel: ``stem: half``: odd size of the guide's convolution (1: per pixel; 3: each pixel's
             guide also sees its 8 neighbours' features, so the full-resolution kernels can follow edges
             the half-resolution levels cannot place to the pixel), replicate padding at the frame's edges.
+        band_gain: ``kernel_scales > 1``: every level that blends in a coarser one also predicts a per-pixel
+            gain ``β = 2·sigmoid(z)`` in ``[0, 2]`` of its own high band, ``o_l = f_l + α·U(o_{l+1} - D f_l)
+            - (1 - β)·(f_l - U D f_l)``: the band a 2×2 pool drops, which the coarse-to-fine blend keeps whole
+            (the grain a 5×5 kernel leaves at low spp; β > 1 sharpens). ``β = 1`` is the blend without it, and
+            a model extended from one without it (``train.init_extend``: zero weights and bias) starts there.
     """
 
     input_spec: str = "kpcn_split"
@@ -50,6 +55,7 @@ class UNetConfig:
     stem: str = "full"
     guide_channels: int = 8
     guide_kernel: int = 1
+    band_gain: bool = False
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -69,6 +75,9 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.guide_channels must be >= 1 with stem: half, got {self.guide_channels}")
         if self.guide_kernel < 1 or self.guide_kernel % 2 == 0:
             raise ValueError(f"UNetConfig.guide_kernel must be a positive odd integer, got {self.guide_kernel}")
+        if self.band_gain and self.kernel_scales < 2:
+            raise ValueError("UNetConfig.band_gain needs kernel_scales >= 2 (the gain is of the band a coarser "
+                             "kernel level does not replace)")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from .kernel_heads import _softmax_weights, combine_levels
+from .kernel_heads import _softmax_weights, blend_weights, combine_levels
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
 from .unet import UNetBranch
 
@@ -157,11 +157,14 @@ class RowStream:
             self._low, self._low_bias = conv1x1_lowp(h, head.weight[:, :h.shape[1]]), head.bias
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
-            weights, alphas = [], []
+            weights, alphas, gains = [], [], []
             for level in range(1, cfg.kernel_scales):
                 hd, d = net.heads[level - 1], decoded[level - 1]
-                # the kernel logits and the blending weight as two products: the logits contiguous, made weights in place
-                alphas.append(torch.sigmoid_(conv1x1(d, hd.weight[kk:], hd.bias[kk:])) if hd.out_channels > kk else None)
+                # the kernel logits and the blending weights as two products: the logits contiguous, made weights in place
+                alpha, gain = blend_weights(conv1x1(d, hd.weight[kk:], hd.bias[kk:])) if hd.out_channels > kk \
+                    else (None, None)
+                alphas.append(alpha)
+                gains.append(gain)
                 weights.append(_softmax_weights(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), cfg.logit_scale, inplace=True))
             for key, colour in self._half.items():
                 filtered = []
@@ -170,7 +173,7 @@ class RowStream:
                         colour = pool2(colour)
                     padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
                     filtered.append(_apply(padded, w, cfg.kernel_size))
-                self._coarse[key] = combine_levels(filtered, alphas)
+                self._coarse[key] = combine_levels(filtered, alphas, gains if cfg.band_gain else None)
         self._half = {}
 
     @property
@@ -198,7 +201,7 @@ class RowStream:
             low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
         z = upsample2(low, context_rows=True)
         z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
-        alpha = torch.sigmoid(z[:, kk:]) if cfg.kernel_scales > 1 else None
+        alpha, gain = blend_weights(z[:, kk:]) if cfg.kernel_scales > 1 else (None, None)
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         i0, n = r0 - e0, r1 - r0
         out = {}
@@ -209,6 +212,10 @@ class RowStream:
             if alpha is None:
                 out[key] = f
                 continue
-            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - pool2(f))
-            out[key] = f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
+            df = pool2(f)
+            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df)
+            o = f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
+            if gain is not None:  # the high band scaled by β: o - (1 - β)(f - U D f)
+                o -= (1.0 - gain[..., i0:i0 + n, :]) * (f[..., i0:i0 + n, :] - upsample2(df)[..., i0:i0 + n, :])
+            out[key] = o
         return out
