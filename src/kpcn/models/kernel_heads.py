@@ -105,9 +105,9 @@ def combine_levels(filtered, alphas, gains=None) -> torch.Tensor:
         f, alpha = filtered[level], alphas[level]
         beta = gains[level] if gains is not None else None
         df = pool2(f)
-        out = f + alpha * upsample2(out - df)
-        if beta is not None:
-            out = out - (1.0 - beta) * (f - upsample2(df))
+        if beta is not None:  # f - (1 - β)(f - U D f) = lerp(U D f, f, β)
+            f = torch.lerp(upsample2(df), f, beta)
+        out = f.addcmul(alpha, upsample2(out - df))
     return out
 
 

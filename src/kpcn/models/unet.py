@@ -349,8 +349,13 @@ register_weights("unet_kpcn", "wide", "unet_wide.safetensors",
                              "unet_kpcn:fast4 and trained 76000 steps on the CPU on 87 + 24 procedural 256x256 scenes, "
                              "the last 48000 with the log_msssim loss, the last 20000 on albedo revision 2, the last "
                              "12000 with converged pairs counting only their converged pixels")
-register_weights("unet_kpcn", "wide64", "unet_wide64.safetensors", default=True,
+register_weights("unet_kpcn", "wide64", "unet_wide64.safetensors",
                  description="unet_kpcn:wide widened to 64/96/128/160 channels, 146 k multiply-adds per pixel, its "
                              "convolutions in bfloat16 where the CPU has it (configs/unet_wide64.yaml): widened from "
                              "unet_kpcn:wide, trained about 3800 steps (batch 32 of 128²) on one GPU on 78 procedural "
                              "256x256 scenes rendered there, then 13000 steps (batch 4) on the CPU on 87 + 24 scenes")
+register_weights("unet_kpcn", "wide64g", "unet_wide64g.safetensors", default=True,
+                 description="unet_kpcn:wide64 with band_gain (a per-pixel gain of each blending level's high band), "
+                             "146 k multiply-adds per pixel, its convolutions in bfloat16 where the CPU has it "
+                             "(configs/unet_wide64g.yaml): the gains added to unet_kpcn:wide64 at 1 and trained "
+                             "12000 steps (batch 4 of 128²) on the CPU on 87 + 24 procedural 256x256 scenes")

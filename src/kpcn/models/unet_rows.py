@@ -213,9 +213,9 @@ class RowStream:
                 out[key] = f
                 continue
             df = pool2(f)
-            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df)
-            o = f[..., i0:i0 + n, :] + alpha[..., i0:i0 + n, :] * up[..., i0:i0 + n, :]
-            if gain is not None:  # the high band scaled by β: o - (1 - β)(f - U D f)
-                o -= (1.0 - gain[..., i0:i0 + n, :]) * (f[..., i0:i0 + n, :] - upsample2(df)[..., i0:i0 + n, :])
-            out[key] = o
+            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df)[..., i0:i0 + n, :]
+            fi = f[..., i0:i0 + n, :]
+            if gain is not None:  # the high band scaled by β: f - (1 - β)(f - U D f) = lerp(U D f, f, β)
+                fi = torch.lerp(upsample2(df)[..., i0:i0 + n, :], fi, gain[..., i0:i0 + n, :])
+            out[key] = fi.addcmul(alpha[..., i0:i0 + n, :], up)
         return out
