@@ -517,3 +517,24 @@ def test_bench_train_and_denoise_compare_precisions(capsys):
     capsys.readouterr()
     assert SUBCOMMANDS["denoise"](["--precisions", "fp16", "--sizes", "24", "--no-oidn"]) == 2
     assert "precisions: expected auto, float32 or bfloat16" in capsys.readouterr().err
+
+
+def test_bench_denoise_rounds_take_turns_and_pool_every_call(capsys, tmp_path):
+    """``--rounds 2``: each configuration runs twice, in turn, and its row is the median of all its timed calls
+    (the JSON keeps each round's median); ``--rounds 0`` is refused."""
+    import json
+    import statistics
+
+    from kpcn.bench import SUBCOMMANDS
+
+    out = tmp_path / "b.json"
+    rc = SUBCOMMANDS["denoise"](["--sizes", "24", "--models", "small_unet", "--no-oidn", "--repeats", "2",
+                                 "--rounds", "2", "--threads", "1", "--json", str(out)])
+    text = capsys.readouterr()
+    assert rc == 0 and "x 2 rounds" in text.out
+    assert text.err.count("running small_unet") == 2
+    (r,) = json.loads(out.read_text())["results"]
+    assert r["status"] == "ok" and r["rounds"] == 2 and len(r["round_medians_s"]) == 2 and len(r["times_s"]) == 4
+    assert r["median_s"] == statistics.median(r["times_s"])
+    assert SUBCOMMANDS["denoise"](["--sizes", "24", "--no-oidn", "--rounds", "0"]) == 2
+    assert "--rounds must be >= 1" in capsys.readouterr().err

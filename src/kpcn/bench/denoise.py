@@ -221,6 +221,18 @@ def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats
                         timeout)
 
 
+def _merge_rounds(rs: list[dict]) -> dict:
+    """One configuration's measurements over ``--rounds``: the median of every timed call, the median CPU
+    seconds, the largest memory; the first failed round's status if any failed."""
+    bad = [r for r in rs if r.get("status") != "ok"]
+    if bad or len(rs) == 1:
+        return bad[0] if bad else rs[0]
+    times = [t for r in rs for t in r["times_s"]]
+    return {**rs[0], "times_s": times, "median_s": statistics.median(times), "min_s": min(times),
+            "cpu_s": statistics.median(r["cpu_s"] for r in rs), "mem_mb": max(r["mem_mb"] for r in rs),
+            "rounds": len(rs), "round_medians_s": [r["median_s"] for r in rs]}
+
+
 def _render_bench_frame(scene: str, size: tuple[int, int], spp: int, seed: int, path: str) -> float:
     from kpcn.io import write_exr
     from kpcn.render import render_frame
@@ -253,6 +265,11 @@ class DenoiseBenchConfig:
     seed: int = 0
     repeats: int | None = field(default=None, metadata={
         "help": "runs per configuration; the first is the measured-memory one (default 1; --skip: 3)"})
+    rounds: int = field(default=1, metadata={
+        "help": "run every configuration this many times, in turn (A, B, OIDN, A, B, OIDN, ...), and report the "
+                "median over all its timed calls: a slow spell of the machine then falls on every configuration, "
+                "not on whichever ran during it (the first after a render or a larger frame ran up to 10 %% "
+                "slower on the seventeenth session's machine)"})
     timeout: float = field(default=300.0, metadata={"help": "seconds per configuration before it is stopped"})
     threads: int | None = field(default=None, metadata={"help": "torch threads (default: torch's)"})
     frames_dir: str | None = field(default=None, metadata={"help": "keep the rendered frames here (default: a temporary folder)"})
@@ -291,6 +308,9 @@ def bench_denoise(argv: list[str]) -> int:
 
         return bench_denoise_skip(args)
     args.repeats = args.repeats or 1
+    if args.rounds < 1:
+        print(f"python -m kpcn.bench denoise: --rounds must be >= 1, got {args.rounds}", file=sys.stderr)
+        return 2
     args.sizes = args.sizes or [(256, 256), (1024, 1024), (1920, 1080)]
     tile = args.tile if args.tile_given else "auto"
     specs = {name: _denoise_model_spec(name) for name in args.models}
@@ -320,22 +340,26 @@ def bench_denoise(argv: list[str]) -> int:
                 print(f"  rendered in {secs:.1f} s", file=sys.stderr, flush=True)
             jobs = [("kpcn", label, name, p) for label, name, p in labels] + \
                 ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto")])
-            for impl, name, model, precision in jobs:
-                model_name, kw = (specs[model][0], specs[model][1]) if impl == "kpcn" else ("", {})
-                print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
-                t0 = time.perf_counter()
-                r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout, args.rows,
-                                        precision)
-                r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
-                print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
-                results.append(r)
+            rounds: dict[str, list[dict]] = {name: [] for _, name, _, _ in jobs}
+            for _ in range(args.rounds):  # every configuration once a round, in the same order
+                for impl, name, model, precision in jobs:
+                    model_name, kw = (specs[model][0], specs[model][1]) if impl == "kpcn" else ("", {})
+                    print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
+                    t0 = time.perf_counter()
+                    r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout,
+                                            args.rows, precision)
+                    r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
+                    print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
+                    rounds[name].append(r)
+            results += [_merge_rounds(rs) for rs in rounds.values()]
     finally:
         if tmp is not None:
             tmp.cleanup()
 
     ok = [r for r in results if r.get("status") == "ok"]
     print(f"\ndenoise benchmark: scene {args.scene} at {args.spp} spp (rendered with Mitsuba at each size), kpcn tile {tile}, "
-          f"configs with random-init weights, {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}")
+          f"configs with random-init weights, {'row bands' if args.rows else 'no row bands'}, {ok[0]['threads'] if ok else '?'} torch threads, {os.cpu_count()} CPUs, repeats={args.repeats}"
+          + (f" x {args.rounds} rounds (each configuration in turn; time = median of all its calls)" if args.rounds > 1 else ""))
     for name in args.models:
         model_name, kw, origin = specs[name]
         print(f"  {name}: {origin}" if kw is None else f"  {name}: {model_name} {kw} (from {origin})")
