@@ -34,8 +34,8 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                         "guide_channels", "guide_kernel", "band_gain"} if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
-    old = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
-    mismatch = {k: (old.get(k), v) for k, v in want.items() if k not in free and old.get(k) != v}
+    held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
+    mismatch = {k: (held.get(k), v) for k, v in want.items() if k not in free and held.get(k) != v}
     if record["model"] != want.get("name") or mismatch:
         raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
                           f"config's {want.get('name')} (file, config): {mismatch}")

@@ -66,8 +66,7 @@ def blend_weights(z: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | 
 @dataclass(frozen=True)
 class MultiScaleKernels:
     """Per-level kernels ``(B, k*k, H/2**l, W/2**l)``, blending weights ``(B, 1, ...)`` (None at the coarsest) and
-    optional high-band gains,
-    at the size padded to the alignment; ``size`` is the unpadded ``(H, W)``."""
+    high-band gains (:attr:`gains`), at the size padded to the alignment; ``size`` is the unpadded ``(H, W)``."""
 
     kernels: tuple[torch.Tensor, ...]
     alphas: tuple[torch.Tensor | None, ...]

@@ -173,7 +173,7 @@ class RowStream:
                         colour = pool2(colour)
                     padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
                     filtered.append(_apply(padded, w, cfg.kernel_size))
-                self._coarse[key] = combine_levels(filtered, alphas, gains if cfg.band_gain else None)
+                self._coarse[key] = combine_levels(filtered, alphas, gains)  # gains: None each without band_gain
         self._half = {}
 
     @property
