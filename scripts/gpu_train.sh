@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
 # scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
-# U-Net on them until BUDGET seconds after the start. The step count follows the measured pace: a probe run to
-# step PROBE, then --resume with the fitted train.stage2_steps (the one-cycle schedule ends in time). Weights,
+# U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
+# configs/unet_wide64g.yaml; INIT: the weights it starts from, default unet_kpcn:wide64g; LR: the peak rate).
+# The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
+# train.stage2_steps (the one-cycle schedule ends in time). Weights,
 # config and logs go to $OUT (model.safetensors, or model_partial.safetensors from the last checkpoint).
 #
 # The machine has PyTorch but not Mitsuba or OpenEXR: carry them as .gpu/site.tar.xz, built here once from the
@@ -16,7 +18,7 @@ set -u
 T0=$(date +%s)
 BUDGET=${BUDGET:-540}; RENDER_S=${RENDER_S:-180}; PROBE=${PROBE:-200}
 PY=${PY:-python3}; RES=${RES:-256}; SPP=${SPP:-"2 4 8 16 32 64 128 256 512"}; REF=${REF:-2048}
-PROCS=${PROCS:-16}; FIRST=${FIRST:-50001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
+PROCS=${PROCS:-16}; FIRST=${FIRST:-60001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
 el() { echo $(( $(date +%s) - T0 )); }
 mkdir -p "$W" "$OUT"
 if [ -f .gpu/site.tar.xz ] && [ -z "${NO_SITE:-}" ]; then
@@ -56,12 +58,12 @@ from kpcn.render import dataset_status
 w = Path(sys.argv[1])
 roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
 print(len(roots), "complete scenes", flush=True)
-base = yaml.safe_load(open("configs/unet_wide.yaml"))
-base["model"]["widths"] = [64, 96, 128, 160]
+base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64g.yaml")))
 d = base["data"]
 d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)))
-base["train"].update(init="unet_kpcn:wide", init_extend=True, batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=2.0e-4, threads=None,
+base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64g"), init_extend=True,
+                     batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
 yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)
 EOF
