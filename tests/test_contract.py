@@ -45,7 +45,8 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                             {"input_spec": "color_albedo_normal_noise", "demodulate": True}],
                    "unet_kpcn": [{"kernel_scales": 3}, {"kernel_scales": 2, "input_spec": "color_albedo_normal"},
                                  {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True}]}
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -367,3 +368,8 @@ def test_multiply_adds_per_pixel_match_a_hand_count():
                         kernel_size=3, summary_channels=0, stem="half", guide_channels=2)
     assert macs_per_pixel(half, 32, 32) == (9 * 4 * 9 / 4 + 4 * 6 * 9 / 16 + (4 * 9 + 6 * 4) * 4 / 4 + 9 * 2
                                             + 4 * 9 / 4 + 2 * 9 + 3 * 9)
+    # with up_kernel: 1 dec0 is a 3x3 of the 4 skip channels and a 1x1 of the 6 coarse ones at their resolution
+    up1 = create_model("unet_kpcn", input_spec="color_albedo_normal", widths=[4, 6], convs_per_level=1,
+                       kernel_size=3, summary_channels=0, stem="half", guide_channels=2, up_kernel=1)
+    assert macs_per_pixel(up1, 32, 32) == (9 * 4 * 9 / 4 + 4 * 6 * 9 / 16 + 4 * 9 * 4 / 4 + 6 * 4 / 16 + 9 * 2
+                                           + 4 * 9 / 4 + 2 * 9 + 3 * 9)

@@ -335,6 +335,46 @@ def test_up_cat_conv_equals_upsample_concatenate_convolve():
         up_cat_conv3x3(torch.zeros(1, 2, 3, 3), torch.zeros(1, 1, 6, 6), torch.zeros(1, 4, 3, 3))
 
 
+def test_up_add_conv_is_the_up_cat_conv_with_centre_coarse_taps():
+    """UpAddConv (``up_kernel: 1``) computes the decoder's ``conv3x3([nearest_up2(coarse), skip])`` whose taps over the
+    coarse channels are zero off the centre: float64, with and without autograd, both memory formats; the in-place
+    broadcast add of a bfloat16 channels_last map against the plain upsampling; a float64 gradcheck."""
+    from kpcn.models.layers import UpAddConv
+
+    g = torch.Generator().manual_seed(0)
+    for b, cc, cs, o, h, w in [(2, 5, 3, 4, 3, 7), (1, 8, 6, 5, 1, 1)]:
+        coarse = torch.randn(b, cc, h, w, generator=g, dtype=torch.float64)
+        skip = torch.randn(b, cs, 2 * h, 2 * w, generator=g, dtype=torch.float64)
+        mod = UpAddConv(cc, cs, o).double()
+        with torch.no_grad():
+            mod.bias.copy_(torch.randn(o, generator=g, dtype=torch.float64))
+        full = torch.zeros(o, cc + cs, 3, 3, dtype=torch.float64)
+        full[:, :cc, 1, 1] = mod.coarse.weight[:, :, 0, 0].detach()
+        full[:, cc:] = mod.weight.detach()
+        want = F.conv2d(torch.cat([F.interpolate(coarse, scale_factor=2, mode="nearest"), skip], 1), full, mod.bias,
+                        padding=1)
+        torch.testing.assert_close(mod((coarse, skip)), want, rtol=1e-12, atol=1e-12)
+        with torch.no_grad():
+            for fmt in (torch.contiguous_format, torch.channels_last):
+                got = mod((coarse.contiguous(memory_format=fmt), skip.contiguous(memory_format=fmt)))
+                torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+        assert torch.autograd.gradcheck(lambda c, s: mod((c, s)), (coarse.clone().requires_grad_(),
+                                                                  skip.clone().requires_grad_()))
+    # bfloat16 channels_last without autograd (the in-place 2x2 broadcast) against the plain path on the same values
+    mod = UpAddConv(6, 4, 8)
+    coarse = torch.randn(1, 6, 5, 9, generator=g).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    skip = torch.randn(1, 4, 10, 18, generator=g).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        got = mod((coarse, skip))
+        plain = F.conv2d(skip, mod.weight, mod.bias, padding=1) + F.interpolate(mod.coarse(coarse), scale_factor=2)
+    assert got.dtype == torch.bfloat16 and got.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(got.float(), plain.float(), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="not twice coarse"):
+        mod((torch.zeros(1, 6, 3, 3), torch.zeros(1, 4, 5, 6)))
+    with pytest.raises(ValueError, match="up_kernel must be 1 or 3"):
+        create_model("unet_kpcn", up_kernel=2)
+
+
 def test_relu_on_bfloat16_is_the_relu_bit_for_bit():
     """kpcn.models.layers.relu_ clamps a bfloat16 tensor through its int16 view: the same bits as relu, but
     for -0, which becomes +0 (relu keeps -0; the two are equal values)."""

@@ -343,6 +343,14 @@ def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
     assert not (tmp_path / "c").exists()
 
 
+def _tiny_unet_cfg(tiny_dataset, tmp_path, name, model_kw, **train_kw):
+    """A 3-step run of a tiny ``stem: half`` U-Net with three kernel levels, its model options ``model_kw``."""
+    cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **train_kw})
+    cfg.model = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
+                     guide_channels=4, summary_channels=4, kernel_scales=3, **model_kw)
+    return cfg
+
+
 def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     """``band_gain`` added to a trained U-Net with ``train.init_extend``: the new gain channels start at
     β = 1 exactly, so the model denoises a real render as the file does; the gains are live (the loss has a
@@ -352,13 +360,8 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
 
-    unet = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
-                guide_channels=4, summary_channels=4, kernel_scales=3)
-
     def ucfg(name, band_gain, **kw):
-        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
-        cfg.model = dict(unet, band_gain=band_gain)
-        return cfg
+        return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(band_gain=band_gain), **kw)
 
     train(ucfg("a", False), progress=False)
     src = tmp_path / "a" / "model.safetensors"
@@ -397,6 +400,53 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
         c = gained.diffuse(x)
         d = plain.diffuse(x)
     assert (c - d).abs().max() > 1e-3
+
+
+def test_init_extend_turns_unet_up_convs_into_1x1(tiny_dataset, tmp_path, render):
+    """``up_kernel: 1`` from a trained ``up_kernel: 3`` U-Net with ``train.init_extend``: each decoder level's first
+    conv keeps the skip's taps and gets the coarse taps summed into its 1x1; where the file's coarse taps are all at
+    the centre that is the same function, so the model denoises a real render as the file does."""
+    import json
+
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.inference import load_model
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    def ucfg(name, up_kernel, **kw):
+        return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(up_kernel=up_kernel), **kw)
+
+    train(ucfg("a", 3), progress=False)
+    with safe_open(str(tmp_path / "a" / "model.safetensors"), "pt") as fh:
+        record, state = json.loads(fh.metadata()["kpcn"]), {k: fh.get_tensor(k) for k in fh.keys()}
+    coarse_in = {"dec.0.0": 16 + 4, "dec.1.0": 12}  # the summary's channels join the bottleneck's
+    centred = dict(state)
+    for b in ("diffuse", "specular"):
+        for m, cc in coarse_in.items():
+            w = state[f"{b}.{m}.weight"].clone()
+            w[:, :cc] = 0
+            w[:, :cc, 1, 1] = state[f"{b}.{m}.weight"][:, :cc].sum(dim=(2, 3))  # the sum, all at the centre
+            centred[f"{b}.{m}.weight"] = w
+    src = tmp_path / "centred.safetensors"
+    save_file(centred, str(src), metadata={"kpcn": json.dumps(record)})
+    with pytest.raises(ConfigError, match="up_kernel"):  # not without saying so
+        train(ucfg("b", 1, init=str(src)), progress=False)
+    train(ucfg("b", 1, init=str(src), init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    file_model, up1 = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    for m, cc in coarse_in.items():
+        conv = up1.diffuse.get_submodule(m)
+        torch.testing.assert_close(conv.weight.detach(), state[f"diffuse.{m}.weight"][:, cc:], rtol=0, atol=1e-6)
+        torch.testing.assert_close(conv.coarse.weight.detach()[:, :, 0, 0],
+                                   state[f"diffuse.{m}.weight"][:, :cc].sum(dim=(2, 3)), rtol=0, atol=1e-6)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, file_model, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, up1, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    # the file as trained (taps off the centre) is a different function: the conversion is not a no-op
+    c = kpcn.denoise(frame, load_model(str(tmp_path / "a" / "model.safetensors"), device="cpu"), device="cpu",
+                     precision="float32")
+    assert np.abs(c - b).max() > 1e-4
 
 
 def test_bfloat16_training_runs_and_is_refused_where_the_model_cannot(tiny_dataset, tmp_path):

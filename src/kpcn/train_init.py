@@ -31,7 +31,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
-                        "guide_channels", "guide_kernel", "band_gain"} if cfg.train.init_extend else set())
+                        "guide_channels", "guide_kernel", "band_gain", "up_kernel"} if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
@@ -66,6 +66,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
       centre taps of the model's kernel, zero elsewhere.
     * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes
       the model's own initial value.
+    * A U-Net decoder's first conv over ``[nearest_up2(coarse), skip]`` (3x3 taps on both) into a model with
+      ``up_kernel: 1`` (:class:`~kpcn.models.layers.UpAddConv`): the skip's taps as they are, the coarse
+      level's summed into its 1x1 (the same function where the coarse level is constant over 3x3 pixels).
 
     Anything else that differs is a ConfigError.
     """
@@ -73,6 +76,7 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     if cut:
         raise ConfigError(f"train.init_extend: {path} has {', '.join(cut)}, which the config's model lacks (a model "
                           f"can only be extended, not cut)")
+    state = _split_up_convs(state, target)
     out = dict(state)
     for k, t in target.items():
         if k not in state:
@@ -99,6 +103,24 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
         w = t.detach().clone().to(v.dtype) if v.dim() == 1 else torch.zeros(t.shape, dtype=v.dtype)
         w[tuple(slice(0, n) for n in v.shape)] = v
         out[k] = w
+    return out
+
+
+def _split_up_convs(state: dict, target: dict) -> dict:
+    """``state`` with each decoder conv the model has as an :class:`~kpcn.models.layers.UpAddConv` (a ``<m>.coarse.weight``
+    the file lacks, ``<m>.weight`` reading fewer channels than the file's) split into the skip's taps and the 1x1 of
+    the coarse channels (the file's first ones) summed over its taps (see :func:`_extend`)."""
+    out = dict(state)
+    for k, t in target.items():
+        m = k[: -len(".coarse.weight")] if k.endswith(".coarse.weight") else None
+        if m is None or k in state or m + ".weight" not in state:
+            continue
+        v, skip = state[m + ".weight"], target[m + ".weight"]
+        cc = v.shape[1] - skip.shape[1]
+        if v.dim() != 4 or cc != t.shape[1] or v.shape[2:] != skip.shape[2:]:
+            continue  # left for _extend to report
+        out[m + ".weight"] = v[:, cc:].clone()
+        out[k] = v[:, :cc].sum(dim=(2, 3), keepdim=True)
     return out
 
 

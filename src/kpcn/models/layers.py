@@ -23,7 +23,7 @@ from ..inputs import get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
            "kernel_prior_bias", "albedo_ratio", "pool2", "upsample2", "conv1x1", "conv1x1_lowp", "Conv1x1",
-           "up_cat_conv3x3", "UpCatConv", "relu_", "ReLU"]
+           "up_cat_conv3x3", "UpCatConv", "UpAddConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
 #: feature channels holding variances (DESIGN 2.2 layout: colour variance, then normal/albedo/depth)
@@ -258,6 +258,43 @@ class UpCatConv(nn.Conv2d):
         if torch.is_grad_enabled():
             return fine * self.in_channels * 9
         return fine * (9 * skip.shape[1] + 4 * coarse.shape[1])
+
+
+class UpAddConv(nn.Conv2d):
+    """A U-Net decoder's first conv with a 1×1 on the coarser level (``UNetConfig.up_kernel: 1``): ``conv3x3(skip) +
+    nearest_up2(conv1x1(coarse))``, taking the pair ``(coarse (B, Cc, h, w), skip (B, Cs, 2h, 2w))``.
+
+    The coarse part runs at the coarse resolution (``Cc`` rather than :class:`UpCatConv`'s ``4 Cc`` multiply-adds
+    per output pixel and channel: the largest conv of the default U-Net's decoder, 96 + 64 -> 64 at half
+    resolution, drops from 15.4 k to 9.6 k per full-resolution pixel); it is :class:`UpCatConv` with the coarse
+    input's taps off the centre zero. The module is the ``nn.Conv2d`` of the skip (``weight`` ``(O, Cs, 3, 3)``,
+    ``bias``) with the 1×1 as its child ``coarse`` (``(O, Cc, 1, 1)``, no bias). Without autograd the
+    upsampled coarse part is added in place, a broadcast over each 2×2 block of a ``channels_last`` result.
+    """
+
+    def __init__(self, coarse_channels: int, skip_channels: int, out_channels: int) -> None:
+        super().__init__(skip_channels, out_channels, 3, padding=1)
+        self.coarse = nn.Conv2d(coarse_channels, out_channels, 1, bias=False)
+        nn.init.kaiming_normal_(self.coarse.weight, nonlinearity="relu")
+
+    def forward(self, pair):  # type: ignore[override]
+        coarse, skip = pair
+        if skip.shape[-2:] != (2 * coarse.shape[-2], 2 * coarse.shape[-1]):
+            raise ValueError(f"UpAddConv: skip {tuple(skip.shape)} is not twice coarse {tuple(coarse.shape)}")
+        out = super().forward(skip)
+        c = self.coarse(coarse)
+        cl = torch.channels_last
+        if torch.is_grad_enabled() or c.dtype != out.dtype or not (
+                out.is_contiguous(memory_format=cl) and c.is_contiguous(memory_format=cl)):
+            return out + F.interpolate(c, scale_factor=2, mode="nearest")
+        b, o, h, w = c.shape  # (B, 2h, 2w, O) in memory: each coarse pixel's O values added to a 2x2 block
+        out.permute(0, 2, 3, 1).view(b, h, 2, w, 2, o).add_(c.permute(0, 2, 3, 1).view(b, h, 1, w, 1, o))
+        return out
+
+    def macs(self, pair, out) -> int:
+        """Multiply-adds of the skip's 3×3 per image (for :func:`kpcn.models.cost.macs_per_pixel`; the child
+        ``coarse`` is counted as the 1×1 conv it is, at the coarse resolution)."""
+        return out[0, 0].numel() * self.out_channels * 9 * self.in_channels
 
 
 def relu_(x: torch.Tensor) -> torch.Tensor:

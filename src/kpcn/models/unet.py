@@ -15,7 +15,9 @@ Each branch of the input spec (diffuse and specular for the split specs, one
 * decoder: nearest-neighbour 2× upsampling, concatenation with the encoder
   features of the same level, ``convs_per_level`` 3×3 convs + ReLU (at inference
   the first conv is computed without building the upsampled map or the
-  concatenation: :class:`~kpcn.models.layers.UpCatConv`);
+  concatenation: :class:`~kpcn.models.layers.UpCatConv`); with ``up_kernel: 1``
+  that conv's taps over the upsampled level are one 1×1 at the coarse resolution
+  (:class:`~kpcn.models.layers.UpAddConv`);
 * head: a 1×1 conv to ``kernel_size²`` bounded logits (``s·tanh(z/s)``), a
   softmax, and the per-pixel kernel applied to the noisy branch colour with
   replicate padding — the output is a convex combination of input pixels, so a
@@ -52,6 +54,7 @@ pooling block and the bilinear upsampling, summed over the kernel levels).
 from __future__ import annotations
 
 import contextlib
+import functools
 
 import torch
 import torch.nn.functional as F
@@ -61,11 +64,16 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel, check_inputs
 from .kernel_heads import GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax, blend_weights
-from .layers import Conv1x1, ReLU, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
+from .layers import Conv1x1, ReLU, UpAddConv, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
 from .registry import register_model, register_weights
 from .unet_config import UNetConfig
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
+
+
+def _up_add(coarse: int, c_in: int, c_out: int, k: int, padding: int) -> UpAddConv:
+    """:class:`UpAddConv` in :func:`_convs`' place of the decoder's first conv over ``c_in = coarse + skip`` inputs."""
+    return UpAddConv(coarse, c_in - coarse, c_out)
 
 
 def _convs(c_in: int, c_out: int, n: int, first=nn.Conv2d) -> nn.Sequential:
@@ -94,7 +102,8 @@ class UNetBranch(nn.Module):
         self.dec = nn.ModuleList()
         below = w[-1] + s
         for level in range(len(w) - 2, -1, -1):
-            self.dec.append(_convs(below + w[level], w[level], cfg.convs_per_level, UpCatConv))
+            first = UpCatConv if cfg.up_kernel == 3 else functools.partial(_up_add, below)
+            self.dec.append(_convs(below + w[level], w[level], cfg.convs_per_level, first))
             below = w[level]
         k, n = cfg.kernel_size, cfg.kernel_scales
         # level 0's head is `head` (the single-scale model's name); coarser levels' are `heads.<l-1>`;
@@ -136,6 +145,9 @@ class UNetBranch(nn.Module):
         for j, level in enumerate(range(len(w) - 2, -1, -1)):
             for i in range(n):
                 groups[f"dec.{j}.{2 * i}"] = ((w[level],), below + (w[level],) if i == 0 else (w[level],))
+            if cfg.up_kernel == 1:  # the skip's 3x3 and the coarse level's 1x1 (UpAddConv)
+                groups[f"dec.{j}.0"] = ((w[level],), (w[level],))
+                groups[f"dec.{j}.0.coarse"] = ((w[level],), below)
             below = (w[level],)
         off = cfg.offset
         if off:
