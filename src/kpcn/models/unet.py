@@ -366,8 +366,14 @@ register_weights("unet_kpcn", "wide64", "unet_wide64.safetensors",
                              "convolutions in bfloat16 where the CPU has it (configs/unet_wide64.yaml): widened from "
                              "unet_kpcn:wide, trained about 3800 steps (batch 32 of 128²) on one GPU on 78 procedural "
                              "256x256 scenes rendered there, then 13000 steps (batch 4) on the CPU on 87 + 24 scenes")
-register_weights("unet_kpcn", "wide64g", "unet_wide64g.safetensors", default=True,
+register_weights("unet_kpcn", "wide64g", "unet_wide64g.safetensors",
                  description="unet_kpcn:wide64 with band_gain (a per-pixel gain of each blending level's high band), "
                              "146 k multiply-adds per pixel, its convolutions in bfloat16 where the CPU has it "
                              "(configs/unet_wide64g.yaml): the gains added to unet_kpcn:wide64 at 1 and trained "
                              "12000 steps (batch 4 of 128²) on the CPU on 87 + 24 procedural 256x256 scenes")
+register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors", default=True,
+                 description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
+                             "level through a 1x1 at its own resolution), 126 k multiply-adds per pixel, its convolutions "
+                             "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
+                             "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
+                             "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
