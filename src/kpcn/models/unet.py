@@ -143,10 +143,10 @@ class UNetBranch(nn.Module):
             groups["summary"] = ((s,), (w[-1], w[-1]))  # [mean, std] of the bottleneck
         below = (w[-1], s) if s else (w[-1],)
         for j, level in enumerate(range(len(w) - 2, -1, -1)):
+            cat = cfg.up_kernel == 3  # UpCatConv reads [upsampled, skip]; UpAddConv the skip, its child the coarse level
             for i in range(n):
-                groups[f"dec.{j}.{2 * i}"] = ((w[level],), below + (w[level],) if i == 0 else (w[level],))
-            if cfg.up_kernel == 1:  # the skip's 3x3 and the coarse level's 1x1 (UpAddConv)
-                groups[f"dec.{j}.0"] = ((w[level],), (w[level],))
+                groups[f"dec.{j}.{2 * i}"] = ((w[level],), below + (w[level],) if i == 0 and cat else (w[level],))
+            if not cat:
                 groups[f"dec.{j}.0.coarse"] = ((w[level],), below)
             below = (w[level],)
         off = cfg.offset
