@@ -35,10 +35,19 @@ def test_rendered_groups_add_up_to_the_beauty(groups):
         assert groups[n].max() > 0 and _rel(groups[n], groups["color"]) > 0.05
 
 
-@pytest.mark.parametrize("model", ["shipped", "unet_can", "kpcn_demod"])
-def test_denoised_light_groups_sum_to_the_denoised_beauty(groups, model):
+@pytest.mark.parametrize("model", ["shipped", "unet_can", "kpcn_demod", "unet_albedo", "unet_albedo_rows"])
+def test_denoised_light_groups_sum_to_the_denoised_beauty(groups, model, monkeypatch):
     frame = groups
-    if model == "unet_can":  # one colour branch: groups are colour layers
+    tile = 16
+    if model.startswith("unet_albedo"):  # its own remodulation albedo: the groups must be remodulated with it too
+        torch.manual_seed(0)
+        net = create_model("unet_kpcn", widths=[8, 8, 12], stem="half", kernel_scales=3, band_gain=True,
+                           albedo_kernel=3, out_init_gain=5.0).eval()
+        if model.endswith("rows"):  # the whole frame a band of rows at a time
+            import kpcn.inference.rows as rows
+            monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", 1)
+            tile = None
+    elif model == "unet_can":  # one colour branch: groups are colour layers
         torch.manual_seed(0)
         net = create_model("unet_kpcn", input_spec="color_albedo_normal", out_init_gain=5.0).eval()
     elif model == "kpcn_demod":  # kernels weighted by albedo ratios: the groups must get the same weighting
@@ -48,7 +57,8 @@ def test_denoised_light_groups_sum_to_the_denoised_beauty(groups, model):
     else:
         net = None
     names = _names(frame)
-    res = denoise_result(frame, net, tile=16, device="cpu", layers=names)
+    res = denoise_result(frame, net, tile=tile, device="cpu", layers=names)
+    assert res.stats.row_bands == (1 if model == "unet_albedo_rows" else 0) * 2  # 40 rows padded to 64: 2 bands
     assert set(res.layers) == set(names)
     total = sum(res.layers[n] for n in names)
     assert _rel(total, res.color) < 1e-5

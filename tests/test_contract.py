@@ -46,7 +46,8 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                    "unet_kpcn": [{"kernel_scales": 3}, {"kernel_scales": 2, "input_spec": "color_albedo_normal"},
                                  {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1}]}
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -373,3 +374,15 @@ def test_multiply_adds_per_pixel_match_a_hand_count():
                        kernel_size=3, summary_channels=0, stem="half", guide_channels=2, up_kernel=1)
     assert macs_per_pixel(up1, 32, 32) == (9 * 4 * 9 / 4 + 4 * 6 * 9 / 16 + 4 * 9 * 4 / 4 + 6 * 4 / 16 + 9 * 2
                                            + 4 * 9 / 4 + 2 * 9 + 3 * 9)
+
+
+def test_albedo_kernel_multiply_adds_match_a_hand_count():
+    """``albedo_kernel: 3`` adds to the diffuse branch alone: 9 + 1 head outputs (the kernel's logits and the gate),
+    each a 1x1 of the finest decoder level's 4 channels at half resolution and of the 2 guide channels at full,
+    and the 3x3 kernel applied to the albedo's 3 channels."""
+    from kpcn.models import macs_per_pixel
+
+    kw = dict(widths=[4, 6], convs_per_level=1, kernel_size=3, summary_channels=0, stem="half", guide_channels=2,
+              kernel_scales=2, up_kernel=1)
+    plain, filt = create_model("unet_kpcn", **kw), create_model("unet_kpcn", albedo_kernel=3, **kw)
+    assert macs_per_pixel(filt, 32, 32) - macs_per_pixel(plain, 32, 32) == 10 * (4 / 4 + 2) + 3 * 9

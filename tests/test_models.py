@@ -375,6 +375,20 @@ def test_up_add_conv_is_the_up_cat_conv_with_centre_coarse_taps():
         create_model("unet_kpcn", up_kernel=2)
 
 
+@pytest.mark.parametrize("kw,msg", [({"albedo_kernel": 2}, "albedo_kernel must be 0"),
+                                    ({"albedo_kernel": -1}, "albedo_kernel must be 0"),
+                                    ({"albedo_kernel": True}, "albedo_kernel: expected an integer"),
+                                    ({"albedo_kernel": 3}, "needs kernel_scales >= 2"),
+                                    ({"albedo_gate_gain": 0.0}, "albedo_gate_gain must be positive"),
+                                    ({"albedo_clamp": 1.0, "input_spec": "split_novar"}, "needs the kpcn_split input spec"),
+                                    ({"albedo_clamp": -1.0}, "albedo_clamp must be >= 0"),
+                                    ({"albedo_kernel": 3, "kernel_scales": 2, "input_spec": "color_albedo_normal"},
+                                     "needs an input spec with a diffuse branch")])
+def test_albedo_kernel_config_is_checked(kw, msg):
+    with pytest.raises(ValueError, match=msg):
+        create_model("unet_kpcn", **kw)
+
+
 def test_relu_on_bfloat16_is_the_relu_bit_for_bit():
     """kpcn.models.layers.relu_ clamps a bfloat16 tensor through its int16 view: the same bits as relu, but
     for -0, which becomes +0 (relu keeps -0; the two are equal values)."""
@@ -437,3 +451,36 @@ def test_band_gain_scales_the_high_band_of_each_blended_level():
                                     ins)
     with pytest.raises(ValueError, match="band_gain needs kernel_scales >= 2"):
         create_model("unet_kpcn", band_gain=True)
+
+
+def test_albedo_clamp_keeps_the_albedo_within_its_noise(render):
+    """``albedo_clamp: c`` on a real 4-spp render of a textured scene, the gates open (a sharp random init): every pixel's
+    remodulation albedo lies within ``c`` standard deviations of its noisy mean, so a pixel whose albedo has no noise
+    keeps it; without the clamp the same model moves some pixels further (the clamp is what holds it). The clamped
+    combination passes a float64 gradcheck."""
+    from kpcn.features import frame_to_tensors
+    from kpcn.models.kernel_heads import gated_albedo
+
+    frame = render("test:textured", spp=4, seed=1, resolution=(40, 40))
+    kw = dict(widths=[8, 8, 12], stem="half", kernel_scales=3, band_gain=True, albedo_kernel=3, out_init_gain=5.0,
+              albedo_gate_gain=8.0)
+    torch.manual_seed(0)
+    clamped = create_model("unet_kpcn", albedo_clamp=1.0, **kw).eval()
+    free = create_model("unet_kpcn", **kw).eval()
+    free.load_state_dict(clamped.state_dict())
+    spec = clamped.input_spec
+    inputs = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    sigma = inputs["diffuse"][:, 25:26].clamp_min(0).sqrt()  # the features' albedo variance (of the pixel mean)
+    assert float((sigma == 0).float().mean()) > 0.05 and float(sigma.max()) > 0.05  # flat texels and noisy edges
+    with torch.no_grad():
+        a, moved, unbounded = inputs["albedo"], clamped(inputs)["albedo"], free(inputs)["albedo"]
+    assert ((moved - a).abs() <= sigma + 1e-6).all()
+    assert ((unbounded - a).abs() > sigma + 1e-3).any()
+    assert torch.equal(moved[(sigma == 0).expand_as(a)], a[(sigma == 0).expand_as(a)])
+    g = torch.Generator().manual_seed(1)
+    args = [torch.rand(1, 3, 5, 6, generator=g, dtype=torch.float64) + 0.5,
+            torch.rand(1, 3, 5, 6, generator=g, dtype=torch.float64) + 0.5,
+            torch.rand(1, 1, 5, 6, generator=g, dtype=torch.float64) * 2 - 1]
+    bound = torch.rand(1, 1, 5, 6, generator=g, dtype=torch.float64) * 0.4 + 0.05
+    assert torch.autograd.gradcheck(lambda x, f, gt: gated_albedo(x, f, gt, bound),
+                                    [t.requires_grad_() for t in args])

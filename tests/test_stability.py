@@ -61,7 +61,8 @@ SMALL = {
 #: options that change how a model reconstructs (Vogels et al.'s multi-scale kernels: not convex)
 OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_scales": 3},
                                   {"stem": "half", "kernel_scales": 3, "band_gain": True},
-                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1}],
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1},
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3}],
                    # kernels weighted by albedo ratios (not convex in the colour)
                    "kpcn": [{"input_spec": "color_albedo_normal_noise", "demodulate": True, "out_init_gain": 5.0}]}
 

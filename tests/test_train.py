@@ -402,6 +402,53 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     assert (c - d).abs().max() > 1e-3
 
 
+def test_init_extend_adds_unet_albedo_kernels(tiny_dataset, tmp_path, render):
+    """``albedo_kernel`` added to a trained U-Net with ``train.init_extend``: the diffuse head's new rows start with
+    the gate at 0 exactly, so the model denoises a real render as the file does and remodulates with the input's
+    albedo; the gate is live (the colour loss has a gradient on its zero weights); an open gate changes the colour,
+    and it leaves a constant albedo constant (each albedo kernel sums to one)."""
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    def ucfg(name, ka, **kw):
+        return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(band_gain=True, albedo_kernel=ka), **kw)
+
+    train(ucfg("a", 0), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    train(ucfg("b", 3, init=str(src), init_extend=True, lr=1e-12, stage1_steps=0, stage2_steps=1), progress=False)
+    plain, filt = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    head = filt.diffuse.head
+    assert head.out_channels == 3 * 3 + 2 + 3 * 3 + 1 and filt.specular.head.out_channels == 3 * 3 + 2
+    frame = render("test:textured", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, filt, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    spec = filt.input_spec
+    inputs = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    with torch.no_grad():
+        ks = filt.diffuse.kernels(inputs["diffuse"])
+        assert ks.albedo is not None and ks.albedo[1].abs().max() <= 1e-6  # g = tanh(0)
+        assert torch.equal(filt(inputs)["albedo"], inputs["albedo"].clamp_min(0))
+    head.weight.requires_grad_(True)
+    filt(inputs)["color"].square().mean().backward()
+    assert head.weight.grad[-1].abs().max() > 0  # the gate's row
+    with torch.no_grad():
+        head.bias[-1] = 2.0  # g = tanh(2) ≈ 0.96: the albedo mostly filtered
+        out = filt(inputs)
+        assert (out["albedo"] - inputs["albedo"]).abs().max() > 1e-2  # test:textured's albedo is not smooth
+        assert (out["color"] - plain(inputs)["color"]).abs().max() > 1e-3
+        flat = dict(inputs, albedo=torch.full_like(inputs["albedo"], 0.37))
+        torch.testing.assert_close(filt(flat)["albedo"], flat["albedo"], rtol=0, atol=1e-6)
+    # the file's trained gates read through another gain would be other gates: refused
+    cfg = ucfg("c", 3, init=str(tmp_path / "b" / "model.safetensors"), init_extend=True, stage1_steps=0, stage2_steps=1)
+    cfg.model["albedo_gate_gain"] = 8.0
+    with pytest.raises(ConfigError, match="albedo_gate_gain"):
+        train(cfg, progress=False)
+    assert not (tmp_path / "c").exists()
+
+
 def test_init_extend_turns_unet_up_convs_into_1x1(tiny_dataset, tmp_path, render):
     """``up_kernel: 1`` from a trained ``up_kernel: 3`` U-Net with ``train.init_extend``: each decoder level's first
     conv keeps the skip's taps and gets the coarse taps summed into its 1x1; where the file's coarse taps are all at

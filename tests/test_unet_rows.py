@@ -53,6 +53,8 @@ def _rel(a, b) -> float:
 @pytest.mark.parametrize("kw", [{}, {"kernel_scales": 1}, {"kernel_scales": 4}, {"kernel_scales": 2, "kernel_size": 3},
                                 {"guide_kernel": 3}, {"guide_kernel": 5, "kernel_scales": 1}, {"band_gain": True},
                                 {"band_gain": True, "kernel_scales": 4}, {"up_kernel": 1, "band_gain": True},
+                                {"albedo_kernel": 3, "band_gain": True}, {"albedo_kernel": 5, "kernel_scales": 2, "albedo_gate_gain": 4.0},
+                                {"albedo_kernel": 3, "albedo_clamp": 2.0, "albedo_gate_gain": 8.0},
                                 {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
                                 {"input_spec": "color_albedo_normal_noise"}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")

@@ -31,11 +31,15 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
-                        "guide_channels", "guide_kernel", "band_gain", "up_kernel"} if cfg.train.init_extend else set())
+                        "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain", "albedo_clamp"} if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
     mismatch = {k: (held.get(k), v) for k, v in want.items() if k not in free and held.get(k) != v}
+    for k in ("albedo_gate_gain", "albedo_clamp"):
+        # a file's trained albedo gates read through another gain or bound would be other gates: only new ones may
+        if held.get("albedo_kernel") and k in want and held.get(k) != want[k]:
+            mismatch[k] = (held.get(k), want[k])
     if record["model"] != want.get("name") or mismatch:
         raise ConfigError(f"train.init: {path} holds {record['model']} with other hyper-parameters than the "
                           f"config's {want.get('name')} (file, config): {mismatch}")
@@ -60,8 +64,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     * Any other tensor that reads fewer input channels (dim 1) is zero-padded to the new ones (the last:
       a zero weight ignores them).
     * A conv with more outputs (dim 0: the demodulation weight's channel, the blending weight of a
-      U-Net kernel level that gains a coarser level, or its high-band gain) gets zero weights and the
-      model's own initial bias for them (a gain's: 0, so ``β = 1``).
+      U-Net kernel level that gains a coarser level, its high-band gain, or the diffuse head's albedo kernel
+      and gate) gets zero weights and the model's own initial bias for them (a gain's: 0, so ``β = 1``; the
+      albedo gate's: 0, so the albedo is the input's).
     * A conv weight with a smaller odd kernel (a 1x1 U-Net guide in a model whose guide is 3x3) becomes the
       centre taps of the model's kernel, zero elsewhere.
     * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes

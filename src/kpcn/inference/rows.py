@@ -74,7 +74,8 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
             signals = aov_signals(plans, branches, lambda n: rows_of(frame_to_tensors(frame, (n,), crop, device)[n], r0, r1, c0),
                                   rows_of(inputs["albedo"], r0, r1, c0))
         for b, s in streams.items():
-            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b))
+            a_rows = rows_of(inputs["albedo"], r0, r1, c0) if s.branch.albedo_kernel else None
+            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b), a_rows)
         del inputs, signals
     for s in streams.values():
         s.run()
@@ -85,7 +86,9 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
         res = {b: {k: v[..., :n, :w] for k, v in s.rows(r0, r1).items()} for b, s in streams.items()}
         noisy = {b: {k: v[..., r0:r0 + n, :w] for k, v in s.signals.items()} for b, s in streams.items()} if plans else {}
         outs = {b: r[beauty] for b, r in res.items()}
-        a = albedo[..., r0:r0 + n, :]
+        # the albedo the colour is remodulated with: a branch's own (albedo kernels), else the frame's
+        a = next((r[unet_rows.RowStream.ALBEDO] for r in res.values() if unet_rows.RowStream.ALBEDO in r),
+                 albedo[..., r0:r0 + n, :])
         color = spec.reconstruct(outs, {"albedo": a})
         out[r0:r0 + n] = color[0].float().permute(1, 2, 0).cpu().numpy()
         if plans:

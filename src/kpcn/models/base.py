@@ -32,7 +32,9 @@ model is only what it declares here:
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
 absent is zero and not run) and returns ``{branch: (B, 3, H, W), ...,
 "color": (B, 3, H, W)}``: each branch in its own (feature) space and the
-final radiance, finite and non-negative.
+final radiance, finite and non-negative. A model that remodulates with an albedo of its own (the U-Net's
+``albedo_kernel``) also returns it as ``"albedo"`` ``(B, 3, H, W)``; layers remodulated beside the colour
+(light groups) use that one.
 """
 from __future__ import annotations
 

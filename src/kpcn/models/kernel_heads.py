@@ -18,7 +18,8 @@ from torch import nn
 from ..ops.kernel_apply import KernelApply
 from .layers import conv1x1, pool2, upsample2
 
-__all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels"]
+__all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
+           "gated_albedo", "albedo_bound"]
 
 _LOG2_E = 1.4426950408889634
 
@@ -63,6 +64,29 @@ def blend_weights(z: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | 
     return alpha, gain
 
 
+def gate_of(z: torch.Tensor, gain: float = 1.0) -> torch.Tensor:
+    """The albedo gate ``g = tanh(gain · z)`` of its logit ``(B, 1, H, W)`` (0: the noisy albedo as it is)."""
+    return torch.tanh(z * gain) if gain != 1.0 else torch.tanh(z)
+
+
+def gated_albedo(albedo: torch.Tensor, filtered: torch.Tensor, gate: torch.Tensor,
+                 bound: torch.Tensor | None = None) -> torch.Tensor:
+    """``max(a + g · (K_a ⊛ a - a), 0)``: the albedo the colour is remodulated with (``UNetConfig.albedo_kernel``);
+    ``albedo`` and ``filtered`` ``(B, 3, H, W)``, ``gate`` ``(B, 1, H, W)`` in ``[-1, 1]``; ``bound`` ``(B, 1, H, W)``
+    (``UNetConfig.albedo_clamp``): the correction ``K_a ⊛ a - a`` clamped to ``[-bound, bound]`` first."""
+    if bound is None:
+        return torch.lerp(albedo, filtered, gate.to(filtered.dtype)).clamp_min(0.0)
+    delta = filtered - albedo
+    delta = torch.minimum(torch.maximum(delta, -bound), bound)
+    return albedo.addcmul(gate.to(delta.dtype), delta).clamp_min(0.0)
+
+
+def albedo_bound(variance: torch.Tensor, c: float) -> torch.Tensor:
+    """``c · sqrt(max(variance, 0))``: the most an albedo may move (``UNetConfig.albedo_clamp``), of the variance of its
+    pixel mean ``(B, 1, H, W)``."""
+    return variance.clamp_min(0.0).sqrt().mul_(c)
+
+
 @dataclass(frozen=True)
 class MultiScaleKernels:
     """Per-level kernels ``(B, k*k, H/2**l, W/2**l)``, blending weights ``(B, 1, ...)`` (None at the coarsest) and
@@ -73,6 +97,10 @@ class MultiScaleKernels:
     size: tuple[int, int]
     #: per-level high-band gains ``(B, 1, ...)`` (``UNetConfig.band_gain``; None: every gain 1)
     gains: tuple[torch.Tensor | None, ...] | None = None
+    #: ``UNetConfig.albedo_kernel``: the albedo's full-resolution kernels ``(B, k_a², H, W)`` (softmax-normalised)
+    #: and gates ``(B, 1, H, W)`` (and with ``albedo_clamp`` the bounds ``(B, 1, H, W)``, else None), for
+    #: :func:`gated_albedo`; None: the albedo as it is
+    albedo: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
 
 
 class MultiScaleApply(nn.Module):

@@ -26,9 +26,9 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from .kernel_heads import _softmax_weights, blend_weights, combine_levels
+from .kernel_heads import _softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
-from .unet import UNetBranch
+from .unet import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
 
@@ -64,10 +64,12 @@ class RowStream:
     then ``run`` once, then ask for output bands with ``rows``. Besides the beauty (the branch colour,
     key :attr:`BEAUTY`), ``feed`` can take other three-channel layers in the branch's space (light
     groups, AOVs): ``rows`` returns each filtered with the same kernels and the same multi-scale
-    blend. Inference only (no autograd).
+    blend. Inference only (no autograd). A branch with albedo kernels (``UNetConfig.albedo_kernel``) is also
+    fed the albedo, and ``rows`` returns the albedo it remodulates with (key :attr:`ALBEDO`).
     """
 
     BEAUTY = "beauty"
+    ALBEDO = "albedo"
 
     def __init__(self, branch: UNetBranch, height: int, width: int, device=None, dtype=torch.float32) -> None:
         cfg = branch.cfg
@@ -92,14 +94,27 @@ class RowStream:
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
         self._coarse: dict[str, torch.Tensor] = {}
+        #: the albedo at full resolution (a branch with albedo kernels), and with albedo_clamp its bound as a 4th channel
+        clamp = bool(branch.albedo_kernel and cfg.albedo_clamp)
+        self._albedo = torch.empty(1, 3 + clamp, hp, wp, **self._kw) if branch.albedo_kernel else None
 
-    def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None) -> None:
+    def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None,
+             albedo: torch.Tensor | None = None) -> None:
         """Features ``(1, C, r1 - r0, padded width)`` of rows ``[r0, r1)`` of the padded frame (bands in order),
-        and ``layers``: other ``(1, 3, r1 - r0, padded width)`` signals to filter (the same keys every band)."""
+        ``layers``: other ``(1, 3, r1 - r0, padded width)`` signals to filter (the same keys every band), and
+        ``albedo`` ``(1, 3, r1 - r0, padded width)``: the same rows of the albedo (a branch with albedo kernels
+        needs it)."""
         n = x.shape[-2]
         if r0 != self._fed or n % 2 or x.shape[-1] != self.padded_size[1]:
             raise ValueError(f"RowStream.feed: expected an even number of rows from row {self._fed}, "
                              f"{self.padded_size[1]} wide; got rows {r0}..{r0 + n}, {x.shape[-1]} wide")
+        if self._albedo is not None:
+            if albedo is None:
+                raise ValueError("RowStream.feed: this branch filters the albedo (albedo_kernel): give each band's albedo")
+            self._albedo[:, :3, r0:r0 + n, :] = albedo
+            if self._albedo.shape[1] > 3:
+                self._albedo[:, 3:, r0:r0 + n, :] = albedo_bound(x[:, ALBEDO_VARIANCE:ALBEDO_VARIANCE + 1].float(),
+                                                                 self.cfg.albedo_clamp)
         signals = {self.BEAUTY: x[:, :3], **(layers or {})}
         if r0 == 0:
             hp, wp = self.padded_size
@@ -201,10 +216,13 @@ class RowStream:
             low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
         z = upsample2(low, context_rows=True)
         z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
-        alpha, gain = blend_weights(z[:, kk:]) if cfg.kernel_scales > 1 else (None, None)
-        weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
+        nb = self.branch.head_layout[1]
+        alpha, gain = blend_weights(z[:, kk:kk + nb]) if cfg.kernel_scales > 1 else (None, None)
         i0, n = r0 - e0, r1 - r0
         out = {}
+        if self._albedo is not None:  # before the logits' softmax (in place in z)
+            out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:], e0, e1)[..., i0:i0 + n, :]
+        weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         for key, full in self._full.items():
             colour = F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
                 full[..., e0:e1, :]
@@ -219,3 +237,19 @@ class RowStream:
                 fi = torch.lerp(upsample2(df)[..., i0:i0 + n, :], fi, gain[..., i0:i0 + n, :])
             out[key] = fi.addcmul(alpha[..., i0:i0 + n, :], up)
         return out
+
+    def _albedo_rows(self, za: torch.Tensor, e0: int, e1: int) -> torch.Tensor:
+        """Rows ``[e0, e1)`` of the albedo the colour is remodulated with, from the head's albedo logits and gate
+        ``za`` over those rows (:meth:`UNetBranch.filter_albedo`, a band at a time)."""
+        ka = self.branch.albedo_kernel
+        r = ka // 2
+        albedo = self._albedo[:, :3]
+        padded = F.pad(clamped_rows(albedo, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
+            albedo[..., e0:e1, :]
+        gate = gate_of(za[:, -1:], self.cfg.albedo_gate_gain)
+        # za is this band's own (a slice of z): its logits made weights in place
+        filtered = _apply(padded, _softmax_weights(za[:, :-1], self.cfg.logit_scale, inplace=True), ka)
+        a = albedo[..., e0:e1, :]
+        if self._albedo.shape[1] > 3:
+            return gated_albedo(a, filtered, gate, self._albedo[:, 3:, e0:e1, :])
+        return filtered.sub_(a).mul_(gate).add_(a).clamp_min_(0.0)  # gated_albedo in place: a + g (K a - a)
