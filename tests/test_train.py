@@ -301,17 +301,18 @@ def test_init_extend_adds_a_coarser_kernel_level(tiny_dataset, tmp_path, render)
     assert not (tmp_path / "c").exists()
 
 
-def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
+@pytest.mark.parametrize("up_kernel", [3, 1])
+def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render, up_kernel):
     """A U-Net with wider levels, started from a narrower file, denoises a real render as the file does
-    (each channel group keeps its place: a decoder conv reads [upsampled, skip], the summary [mean, std]);
-    its new channels are live (the loss has a gradient on the zero weights that read them). Narrowing is
-    refused before anything is written."""
+    (each channel group keeps its place: a decoder conv reads [upsampled, skip], or with ``up_kernel: 1`` the skip
+    and, through its 1x1 child, the coarse level; the summary [mean, std]); its new channels are live (the loss has a
+    gradient on the zero weights that read them). Narrowing is refused before anything is written."""
     import kpcn
     from kpcn.config import ConfigError
     from kpcn.inference import load_model
 
     unet = dict(name="unet_kpcn", convs_per_level=1, kernel_size=3, stem="half", guide_channels=4,
-                summary_channels=4, kernel_scales=2)
+                summary_channels=4, kernel_scales=2, up_kernel=up_kernel)
 
     def ucfg(name, widths, **kw):
         cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **kw})
@@ -330,7 +331,7 @@ def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render):
     assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
     # the file's level-1 decoder conv reads the new bottleneck channels 16..23 through zero weights (moved
     # only by the one step at lr 1e-12), and they learn
-    w = wide.diffuse.dec[0][0].weight
+    w = wide.diffuse.dec[0][0].weight if up_kernel == 3 else wide.diffuse.dec[0][0].coarse.weight
     assert w[:12, 16:24].abs().max() <= 1e-9
     spec = wide.input_spec
     from kpcn.features import frame_to_tensors
