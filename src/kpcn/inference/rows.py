@@ -57,6 +57,7 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
     hp, wp = next(iter(streams.values())).padded_size
     layers = spec.layers_for(branches)
     albedo = torch.empty(1, 3, h, w, device=device)
+    filters_albedo = any(s.branch.albedo_kernel for s in streams.values())
 
     def rows_of(t, r0, r1, c0):  # rows [r0, r1) of the padded frame from a crop starting at row c0
         x = clamped_rows(t, r0 - c0, r1 - c0)
@@ -70,12 +71,13 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
         if r0 < h:
             albedo[..., r0:min(r1, h), :] = inputs["albedo"][..., : min(r1, h) - r0, :]
         signals = {}
+        # the albedo over the padded rows: for the layers' demodulation and a branch that filters it (albedo_kernel)
+        a_rows = rows_of(inputs["albedo"], r0, r1, c0) if plans or filters_albedo else None
         if plans:  # the layers each branch filters, over the same padded rows
             signals = aov_signals(plans, branches, lambda n: rows_of(frame_to_tensors(frame, (n,), crop, device)[n], r0, r1, c0),
-                                  rows_of(inputs["albedo"], r0, r1, c0))
+                                  a_rows)
         for b, s in streams.items():
-            a_rows = rows_of(inputs["albedo"], r0, r1, c0) if s.branch.albedo_kernel else None
-            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b), a_rows)
+            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b), a_rows if s.branch.albedo_kernel else None)
         del inputs, signals
     for s in streams.values():
         s.run()

@@ -171,13 +171,21 @@ class DenoiserModel(nn.Module):
         A branch absent from ``inputs`` (or ``None``) is not run and is zero.
         """
         check_inputs(self, inputs)
-        out = {b: self.run_branch(b, inputs[b], context) for b in self.branches if inputs.get(b) is not None}
-        color = self.input_spec.reconstruct(out, inputs)
+        out, albedo = self.run_branches(inputs, context)
+        color = self.input_spec.reconstruct(out, inputs if albedo is None else {**inputs, "albedo": albedo})
         for b in self.branches:  # a branch not run is zero in its own space
             if b not in out:
                 out[b] = torch.zeros_like(color)
         out["color"] = color
+        if albedo is not None:
+            out["albedo"] = albedo
         return out
+
+    def run_branches(self, inputs: dict[str, torch.Tensor], context: Any = None
+                     ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+        """Each present branch's output (:meth:`run_branch`), and the albedo the colour is remodulated with: None
+        (the inputs' own) unless the model makes one (the U-Net's ``albedo_kernel``)."""
+        return {b: self.run_branch(b, inputs[b], context) for b in self.branches if inputs.get(b) is not None}, None
 
 
 def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:

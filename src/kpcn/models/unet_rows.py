@@ -1,6 +1,6 @@
 """Row-band inference for the ``stem: half`` U-Net: its full-resolution work done a band of rows at a time.
 
-A ``stem: half`` :class:`~kpcn.models.unet.UNetBranch` does three things at full resolution: it pools
+A ``stem: half`` :class:`~kpcn.models.unet_branch.UNetBranch` does three things at full resolution: it pools
 (and transforms) the features, computes the guide of them (a 1×1 or a small conv), and at the end turns the upsampled
 head plus the guide into kernels, applies them and blends in the coarser levels. Each is a few
 element-wise passes over up to 27 channels: on a 1920×1080 frame, hundreds of MB per pass, so the
@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
-from .unet import ALBEDO_VARIANCE, UNetBranch
+from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
 
@@ -249,7 +249,5 @@ class RowStream:
         gate = gate_of(za[:, -1:], self.cfg.albedo_gate_gain)
         # za is this band's own (a slice of z): its logits made weights in place
         filtered = _apply(padded, _softmax_weights(za[:, :-1], self.cfg.logit_scale, inplace=True), ka)
-        a = albedo[..., e0:e1, :]
-        if self._albedo.shape[1] > 3:
-            return gated_albedo(a, filtered, gate, self._albedo[:, 3:, e0:e1, :])
-        return filtered.sub_(a).mul_(gate).add_(a).clamp_min_(0.0)  # gated_albedo in place: a + g (K a - a)
+        bound = self._albedo[:, 3:, e0:e1, :] if self._albedo.shape[1] > 3 else None
+        return gated_albedo(albedo[..., e0:e1, :], filtered, gate, bound)
