@@ -47,7 +47,8 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                  {"stem": "half", "kernel_scales": 3}, {"stem": "half", "kernel_scales": 1},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3}]}
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3},
+                                 {"stem": "half", "kernel_scales": 3, "up_kernel": 1, "specular_widths": [8, 12, 16, 24]}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -374,6 +375,19 @@ def test_multiply_adds_per_pixel_match_a_hand_count():
                        kernel_size=3, summary_channels=0, stem="half", guide_channels=2, up_kernel=1)
     assert macs_per_pixel(up1, 32, 32) == (9 * 4 * 9 / 4 + 4 * 6 * 9 / 16 + 4 * 9 * 4 / 4 + 6 * 4 / 16 + 9 * 2
                                            + 4 * 9 / 4 + 2 * 9 + 3 * 9)
+
+
+def test_specular_widths_multiply_adds_are_the_two_branches_own():
+    """A model with ``specular_widths`` costs its diffuse branch's multiply-adds (a model of ``widths``, halved: two
+    equal branches) plus its specular branch's (a model of the specular widths, halved)."""
+    from kpcn.models import macs_per_pixel
+
+    kw = dict(convs_per_level=1, kernel_size=3, summary_channels=2, stem="half", guide_channels=2, kernel_scales=2,
+              up_kernel=1)
+    wide, narrow = create_model("unet_kpcn", widths=[8, 12], **kw), create_model("unet_kpcn", widths=[4, 6], **kw)
+    mixed = create_model("unet_kpcn", widths=[8, 12], specular_widths=[4, 6], **kw)
+    assert macs_per_pixel(mixed, 32, 32) == (macs_per_pixel(wide, 32, 32) + macs_per_pixel(narrow, 32, 32)) / 2
+    assert macs_per_pixel(mixed, 32, 32) < macs_per_pixel(wide, 32, 32)
 
 
 def test_albedo_kernel_multiply_adds_match_a_hand_count():

@@ -389,6 +389,33 @@ def test_albedo_kernel_config_is_checked(kw, msg):
         create_model("unet_kpcn", **kw)
 
 
+@pytest.mark.parametrize("kw,msg", [({"specular_widths": [8, 12, 16]}, "specular_widths must be None or 4"),
+                                    ({"specular_widths": [8, 12, 0, 24]}, "specular_widths must be None or 4"),
+                                    ({"specular_widths": [8, 12, 16, 24], "input_spec": "color_albedo_normal"},
+                                     "needs an input spec with a specular branch")])
+def test_specular_widths_config_is_checked(kw, msg):
+    with pytest.raises(ValueError, match=msg):
+        create_model("unet_kpcn", **kw)
+
+
+def test_specular_widths_narrow_the_specular_branch_alone():
+    """``specular_widths`` builds the specular branch at its own widths and leaves the diffuse branch as ``widths``
+    builds it: the same parameters, and the same output on the same input, as in a model without it."""
+    torch.manual_seed(0)
+    base = create_model("unet_kpcn", widths=[8, 12, 16], stem="half", kernel_scales=2).eval()
+    torch.manual_seed(0)
+    narrow = create_model("unet_kpcn", widths=[8, 12, 16], stem="half", kernel_scales=2,
+                          specular_widths=[4, 6, 10]).eval()
+    assert [b[0].out_channels for b in narrow.specular.enc] == [4, 6, 10]
+    assert [b[0].out_channels for b in narrow.diffuse.enc] == [8, 12, 16]
+    for (k, a), (_, b) in zip(base.diffuse.state_dict().items(), narrow.diffuse.state_dict().items()):
+        assert torch.equal(a, b), k
+    x = torch.rand(1, base.input_spec.channels, 24, 24)
+    with torch.no_grad():
+        torch.testing.assert_close(narrow.diffuse(x), base.diffuse(x), rtol=0, atol=0)
+        assert narrow.specular(x).shape == base.specular(x).shape
+
+
 def test_relu_on_bfloat16_is_the_relu_bit_for_bit():
     """kpcn.models.layers.relu_ clamps a bfloat16 tensor through its int16 view: the same bits as relu, but
     for -0, which becomes +0 (relu keeps -0; the two are equal values)."""

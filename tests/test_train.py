@@ -344,6 +344,45 @@ def test_init_extend_widens_a_unet(tiny_dataset, tmp_path, render, up_kernel):
     assert not (tmp_path / "c").exists()
 
 
+def test_init_prune_narrows_the_unet_specular_branch(tiny_dataset, tmp_path, render):
+    """``specular_widths`` below a file's widths, with ``train.init_prune``: each of the specular branch's channel
+    groups keeps the file's first channels (a decoder conv's [coarse, skip] and the summary's [mean, std] each
+    cut group by group), the diffuse branch is the file's and denoises a real render's diffuse as the file does.
+    Without ``init_prune`` (or without ``init_extend``) the narrowing is refused before anything is written."""
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    def ucfg(name, sw=None, **kw):
+        return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(up_kernel=1, specular_widths=sw), **kw)
+
+    train(ucfg("a"), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    with pytest.raises(ConfigError, match="can only grow without train.init_prune"):
+        train(ucfg("b", [6, 8, 12], init=str(src), init_extend=True), progress=False)
+    with pytest.raises(ConfigError, match="init_prune: needs train.init_extend"):
+        train(ucfg("b", [6, 8, 12], init=str(src), init_prune=True), progress=False)
+    assert not (tmp_path / "b").exists()
+    train(ucfg("b", [6, 8, 12], init=str(src), init_extend=True, init_prune=True, lr=1e-12, stage1_steps=1),
+          progress=False)
+    full, cut = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    f, c = full.specular.state_dict(), cut.specular.state_dict()
+    close = dict(rtol=0, atol=1e-9)
+    torch.testing.assert_close(c["enc.1.0.weight"], f["enc.1.0.weight"][:8, :6], **close)
+    torch.testing.assert_close(c["summary.weight"], f["summary.weight"][:, [*range(12), *range(16, 28)]], **close)
+    # dec.0 (level 1) reads the bottleneck [12 of 16, 4 summary channels] through its 1x1 child, the skip (8 of 12)
+    torch.testing.assert_close(c["dec.0.0.coarse.weight"], f["dec.0.0.coarse.weight"][:8, [*range(12), *range(16, 20)]],
+                               **close)
+    torch.testing.assert_close(c["dec.0.0.weight"], f["dec.0.0.weight"][:8, :8], **close)
+    torch.testing.assert_close(c["head.weight"], f["head.weight"][:, [*range(6), *range(8, 12)]], **close)
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    spec = full.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    with torch.no_grad():
+        torch.testing.assert_close(cut.diffuse(x["diffuse"]), full.diffuse(x["diffuse"]), rtol=0, atol=1e-5)
+        assert cut.specular(x["specular"]).shape == full.specular(x["specular"]).shape
+
+
 def _tiny_unet_cfg(tiny_dataset, tmp_path, name, model_kw, **train_kw):
     """A 3-step run of a tiny ``stem: half`` U-Net with three kernel levels, its model options ``model_kw``."""
     cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **train_kw})

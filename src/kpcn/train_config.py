@@ -137,6 +137,10 @@ class TrainConfig:
     #: channels' weights start at zero) and add the precision gate (starting nearly open), so training starts
     #: from the file's outputs (exactly, or within the gate's 0.25 %)
     init_extend: bool = False
+    #: with init_extend: U-Net channel groups may also be narrower than the file's (``specular_widths`` below its
+    #: widths): each group keeps the file's first channels. Unlike extending, the narrowed model does not compute
+    #: the file's function: it is a start for training, not a conversion
+    init_prune: bool = False
     #: dtype of the model's hidden layers (``DenoiserModel.set_compute_dtype``): float32, or bfloat16 (autocast
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
@@ -168,6 +172,8 @@ class TrainConfig:
             raise ConfigError(f"train.warmup: must be in [0, 1), got {self.warmup!r}")
         if not (math.isfinite(self.grad_clip) and self.grad_clip >= 0):
             raise ConfigError(f"train.grad_clip: must be >= 0 (0: off), got {self.grad_clip!r}")
+        if self.init_prune and not self.init_extend:
+            raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:
             raise ConfigError(f"train.precision: expected {' or '.join(PRECISIONS)}, got {self.precision!r}")
         if not (self.device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", self.device)):

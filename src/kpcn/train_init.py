@@ -31,7 +31,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
-                        "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain", "albedo_clamp"} if cfg.train.init_extend else set())
+                        "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain", "albedo_clamp", "specular_widths"} if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
@@ -49,18 +49,21 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
         source_groups = create_model(**record["hparams"]).channel_groups() if groups else None
         # on the CPU, where the file was read: the model may already sit on a GPU
         state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
-                        source_groups)
+                        source_groups, prune=cfg.train.init_prune)
     model.load_state_dict(state)
     return str(path)
 
 
-def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None) -> dict:
+def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None,
+            prune: bool = False) -> dict:
     """``state`` made to fit ``target`` (``train.init_extend``).
 
     * A conv the model lists in ``groups`` (:meth:`~kpcn.models.base.DenoiserModel.channel_groups`, the
       file's in ``source_groups``) may be wider: each of the file's channel groups goes to the start of the
       model's group. New hidden channels keep the model's initial weights; the file's outputs read them
-      with zero weights, so the widened model computes what the file's did.
+      with zero weights, so the widened model computes what the file's did. With ``prune``
+      (``train.init_prune``) a group may also be narrower: it keeps the file's first channels (not the
+      file's function: a start for training).
     * Any other tensor that reads fewer input channels (dim 1) is zero-padded to the new ones (the last:
       a zero weight ignores them).
     * A conv with more outputs (dim 0: the demodulation weight's channel, the blending weight of a
@@ -97,7 +100,7 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
             out[k] = v
         module = k.rpartition(".")[0]
         if module in groups and module in source_groups and t.shape != v.shape:
-            out[k] = _widen(k, v, t, source_groups[module], groups[module], path)
+            out[k] = _widen(k, v, t, source_groups[module], groups[module], path, prune)
             continue
         if t.shape == v.shape:
             continue
@@ -142,30 +145,36 @@ def _embed_taps(k: str, v: torch.Tensor, t: torch.Tensor, path) -> torch.Tensor:
     return w
 
 
-def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path) -> torch.Tensor:
-    """Where the file's channels (groups ``src``) sit among the model's (groups ``dst``)."""
-    if len(src) != len(dst) or any(a > b for a, b in zip(src, dst)):
+def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path,
+                 prune: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """The file's channels (groups ``src``) that the model keeps, and where they sit among the model's (groups
+    ``dst``): each group's first ``min(src, dst)`` channels (a narrower group only with ``prune``)."""
+    if len(src) != len(dst) or (not prune and any(a > b for a, b in zip(src, dst))):
         raise ConfigError(f"train.init_extend: {path}'s {k} has channel groups {src}; the model's are {dst} "
-                          f"(a group can only grow)")
-    starts = [sum(dst[:i]) for i in range(len(dst))]
-    return torch.cat([torch.arange(a) + s for a, s in zip(src, starts)])
+                          f"(a group can only grow{'' if prune else ' without train.init_prune'})")
+    src_at = [sum(src[:i]) for i in range(len(src))]
+    dst_at = [sum(dst[:i]) for i in range(len(dst))]
+    n = [min(a, b) for a, b in zip(src, dst)]
+    return (torch.cat([torch.arange(m) + s for m, s in zip(n, src_at)]),
+            torch.cat([torch.arange(m) + s for m, s in zip(n, dst_at)]))
 
 
-def _widen(k: str, v: torch.Tensor, t: torch.Tensor, src, dst, path) -> torch.Tensor:
+def _widen(k: str, v: torch.Tensor, t: torch.Tensor, src, dst, path, prune: bool = False) -> torch.Tensor:
     """The file's tensor ``v`` placed in the model's ``t`` by channel groups (see :func:`_extend`)."""
     (src_out, src_in), (dst_out, dst_in) = src, dst
     hidden = dst_out is not None
-    rows = _group_index(k, src_out if hidden else (v.shape[0],), dst_out if hidden else (t.shape[0],), path)
+    keep, rows = _group_index(k, src_out if hidden else (v.shape[0],), dst_out if hidden else (t.shape[0],), path,
+                              prune)
     w = t.detach().clone().to(v.dtype)
     if v.dim() == 1:
-        w[rows] = v
+        w[rows] = v[keep]
         return w
     if v.shape[2:] != t.shape[2:]:
         raise ConfigError(f"train.init_extend: {path}'s {k} is {tuple(v.shape)}; the model's is {tuple(t.shape)}")
-    cols = _group_index(k, src_in, dst_in, path)
+    keep_in, cols = _group_index(k, src_in, dst_in, path, prune)
     if not hidden:  # new result channels start silent (zero weights, the model's initial bias)
         w.zero_()
     block = torch.zeros((len(rows),) + tuple(t.shape[1:]), dtype=v.dtype)
-    block[:, cols] = v
+    block[:, cols] = v[keep][:, keep_in]
     w[rows] = block
     return w

@@ -82,7 +82,7 @@ class UNetKPCN(DenoiserModel):
         super().__init__(config)
         self.uses_frame_context = config.summary_channels > 0
         for b in self.branches:
-            self.add_module(b, UNetBranch(config, config.albedo_kernel if b == "diffuse" else 0))
+            self.add_module(b, UNetBranch(config.branch_config(b), config.albedo_kernel if b == "diffuse" else 0))
 
     def _on_compute_dtype(self, dtype: torch.dtype) -> None:
         for b in self.branches:

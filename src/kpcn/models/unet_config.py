@@ -2,6 +2,7 @@
 alignment that follow from it (see :mod:`kpcn.models.unet` for what each field means in the network)."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from ..inputs import get_input_spec
@@ -56,6 +57,9 @@ class UNetConfig:
         albedo_gate_gain: ``c`` in the albedo gate ``g = tanh(c·z)``: Adam moves a logit by about the learning rate
             a step whatever its gradient's scale, so a gate added at ``g = 0`` to a trained model opens ``c`` times
             faster (at 1, 2 200 steps at peak 7e-5 left it at a mean of 0.07).
+        specular_widths: the specular branch's widths where they differ from ``widths`` (None: the same), as many
+            levels. The specular branch is half a two-branch U-Net's multiply-adds; a narrower one buys time
+            (``train.init_prune`` starts it from a file's wider one).
         albedo_clamp: 0 (off) or ``c > 0``: the albedo's correction ``K_a ⊛ a - a`` is clamped to ``± c·σ_a``,
             ``σ_a`` the standard deviation of the pixel's albedo mean (the ``kpcn_split`` features' albedo
             variance), so the filter moves an albedo only within its own noise: a converged albedo stays as it is.
@@ -79,11 +83,20 @@ class UNetConfig:
     albedo_kernel: int = 0
     albedo_gate_gain: float = 1.0
     albedo_clamp: float = 0.0
+    specular_widths: list[int] | None = None
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
         if not self.widths or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.widths):
             raise ValueError(f"UNetConfig.widths must be a non-empty list of positive integers, got {self.widths!r}")
+        sw = self.specular_widths
+        if sw is not None and (not isinstance(sw, (list, tuple)) or len(sw) != len(self.widths)
+                               or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in sw)):
+            raise ValueError(f"UNetConfig.specular_widths must be None or {len(self.widths)} positive integers (as many "
+                             f"levels as widths {list(self.widths)}), got {sw!r}")
+        if sw is not None and "specular" not in spec.branches:
+            raise ValueError(f"UNetConfig.specular_widths needs an input spec with a specular branch; "
+                             f"{spec.name!r} has {spec.branches}")
         if self.convs_per_level < 1:
             raise ValueError(f"UNetConfig.convs_per_level must be >= 1, got {self.convs_per_level}")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
@@ -125,6 +138,12 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.input_transform must be one of {INPUT_TRANSFORMS}, got {self.input_transform!r}")
         if self.input_transform == "logvar" and spec.name != "kpcn_split":
             raise ValueError("UNetConfig.input_transform 'logvar' needs the kpcn_split input spec")
+
+    def branch_config(self, branch: str) -> "UNetConfig":
+        """The architecture of branch ``branch`` (``specular_widths`` applied to the specular branch)."""
+        if branch != "specular" or self.specular_widths is None:
+            return self
+        return dataclasses.replace(self, widths=list(self.specular_widths), specular_widths=None)
 
     @property
     def offset(self) -> int:
