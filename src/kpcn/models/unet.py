@@ -187,8 +187,14 @@ register_weights("unet_kpcn", "wide64a", "unet_wide64a.safetensors",
                              "gate per pixel, and the colour is remodulated with that filtered albedo instead of the "
                              "noisy one), 126 k multiply-adds per pixel (configs/unet_wide64a.yaml): added to wide64u at "
                              "gate 0 and trained 9000 steps (batch 4) on the CPU on 87 + 24 scenes; +0.25 dB over "
-                             "wide64u at 4 spp, 1.0-1.1x its 1080p time")
-register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors", default=True,
+                             "wide64u at 4 spp, 1.0-1.1x its 1080p time (where wide64s starts)")
+register_weights("unet_kpcn", "wide64s", "unet_wide64s.safetensors", default=True,
+                 description="unet_kpcn:wide64a with its specular branch narrowed to 48/64/96/128 channels "
+                             "(specular_widths), 98 k multiply-adds per pixel, convolutions in bfloat16 where the CPU "
+                             "has it (configs/unet_wide64s.yaml): pruned from wide64a (train.init_prune: each channel "
+                             "group keeps its first channels) and trained 9000 steps (batch 4) on the CPU on 87 + 24 "
+                             "scenes; 0.9-1.0x OIDN's 1080p time, 0.89x wide64a's")
+register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                  description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
                              "level through a 1x1 at its own resolution), 126 k multiply-adds per pixel, its convolutions "
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
