@@ -1,7 +1,7 @@
 """The weights a training run starts from: ``train.init`` (a weights file or a shipped ``model:tag``), and
 ``train.init_extend``, which lets the config's model extend the file's (more input channels, a precision gate,
 a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains) so that it starts from the file's
-outputs."""
+outputs; with ``train.init_prune`` also narrower U-Net levels (a start for training, not the file's outputs)."""
 from __future__ import annotations
 
 import dataclasses
