@@ -30,8 +30,10 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"{exc}") from None
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
-    free = {"name"} | ({"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
-                        "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain", "albedo_clamp", "specular_widths"} if cfg.train.init_extend else set())
+    extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
+                  "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
+                  "albedo_clamp", "specular_widths"}
+    free = {"name"} | (extendable if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
@@ -151,7 +153,7 @@ def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path,
     ``dst``): each group's first ``min(src, dst)`` channels (a narrower group only with ``prune``)."""
     if len(src) != len(dst) or (not prune and any(a > b for a, b in zip(src, dst))):
         raise ConfigError(f"train.init_extend: {path}'s {k} has channel groups {src}; the model's are {dst} "
-                          f"(a group can only grow{'' if prune else ' without train.init_prune'})")
+                          f"({'the groups must match one to one' if prune else 'a group can only grow without train.init_prune'})")
     src_at = [sum(src[:i]) for i in range(len(src))]
     dst_at = [sum(dst[:i]) for i in range(len(dst))]
     n = [min(a, b) for a, b in zip(src, dst)]
