@@ -60,3 +60,22 @@ def test_loss_params_weigh_the_ms_ssim_term_and_unknown_ones_are_refused():
     assert t.loss_of(2) == ("log_msssim", {"ssim_weight": 2.0})
     with pytest.raises(ConfigError, match="stage2_loss_params.*no parameter 'eps'"):
         TrainConfig(loss="log", stage2_loss="log_msssim", stage2_loss_params={"eps": 1.0})
+
+
+def test_coarse_term_weighs_lost_energy_not_zero_mean_grain():
+    """``coarse_weight``: a checkerboard of ±d around the target (grain that averages out over 4×4) costs the
+    pooled term nothing though the per-pixel log loss sees it; a 3 % darkening costs it; 0 leaves the loss as it was."""
+    from kpcn.losses import coarse_log_l1, log_l1
+    g = torch.Generator().manual_seed(3)
+    y = torch.rand(1, 3, 1, 1, generator=g).expand(1, 3, 32, 32) + 0.5  # constant per channel
+    sign = (torch.arange(32)[:, None] + torch.arange(32)[None, :]) % 2 * 2 - 1
+    grain = y + 0.2 * sign
+    assert float(log_l1(grain, y)) > 0.05
+    assert float(coarse_log_l1(grain, y)) == pytest.approx(0.0, abs=1e-6)
+    assert float(coarse_log_l1(0.97 * y, y)) > 0.01
+    assert float(coarse_log_l1(0.97 * y[..., :8, :8], y[..., :8, :8], (16, 32))) > 0.01  # pools past the side: one that fits
+    x = y * 0.9
+    plain = float(create_loss("log_msssim")(x, y))
+    assert float(create_loss("log_msssim", {"coarse_weight": 0.0})(x, y)) == plain
+    assert float(create_loss("log_msssim", {"coarse_weight": 2.0})(x, y)) == pytest.approx(
+        plain + 2.0 * float(coarse_log_l1(x, y)), rel=1e-6)
