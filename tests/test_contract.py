@@ -48,8 +48,6 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3,
-                                  "albedo_guide": 4},
                                  {"stem": "half", "kernel_scales": 3, "up_kernel": 1, "specular_widths": [8, 12, 16, 24]}]}
 
 
@@ -402,6 +400,3 @@ def test_albedo_kernel_multiply_adds_match_a_hand_count():
               kernel_scales=2, up_kernel=1)
     plain, filt = create_model("unet_kpcn", **kw), create_model("unet_kpcn", albedo_kernel=3, **kw)
     assert macs_per_pixel(filt, 32, 32) - macs_per_pixel(plain, 32, 32) == 10 * (4 / 4 + 2) + 3 * 9
-    # albedo_guide: c = 2: a 3x3 of the 27 full-resolution features into 2 channels, and their 1x1 into the 10
-    guided = create_model("unet_kpcn", albedo_kernel=3, albedo_guide=2, **kw)
-    assert macs_per_pixel(guided, 32, 32) - macs_per_pixel(filt, 32, 32) == 27 * 9 * 2 + 2 * 10

@@ -1,5 +1,3 @@
-import re
-
 import pytest
 import torch
 import torch.nn.functional as F
@@ -513,15 +511,3 @@ def test_albedo_clamp_keeps_the_albedo_within_its_noise(render):
     bound = torch.rand(1, 1, 5, 6, generator=g, dtype=torch.float64) * 0.4 + 0.05
     assert torch.autograd.gradcheck(lambda x, f, gt: gated_albedo(x, f, gt, bound),
                                     [t.requires_grad_() for t in args])
-
-
-@pytest.mark.parametrize("kw, message", [
-    ({"albedo_guide": 4}, "albedo_guide needs albedo_kernel and stem: half"),
-    ({"albedo_guide": 4, "albedo_kernel": 3, "kernel_scales": 2}, "albedo_guide needs albedo_kernel and stem: half"),
-    ({"albedo_guide": -1, "albedo_kernel": 3, "stem": "half", "kernel_scales": 2}, "albedo_guide must be 0 (off)"),
-    ({"albedo_guide": True, "albedo_kernel": 3, "stem": "half", "kernel_scales": 2}, "albedo_guide must be 0 (off)"),
-])
-def test_albedo_guide_config_errors(kw, message):
-    from kpcn.models.unet_config import UNetConfig
-    with pytest.raises(ValueError, match=re.escape(message)):
-        UNetConfig(**kw)

@@ -442,40 +442,31 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     assert (c - d).abs().max() > 1e-3
 
 
-def _extended_as_before(file_cfg, extended_cfg, tmp_path, render):
-    """Train ``file_cfg("a")`` briefly, extend it to ``extended_cfg("b", ...)`` with ``train.init_extend`` (one step at a
-    negligible rate), and check that both denoise a real render (test:textured, 4 spp) alike; ``(file's model,
-    extended model, the render's model inputs)``."""
-    import kpcn
-    from kpcn.features import frame_to_tensors
-    from kpcn.inference import load_model
-
-    train(file_cfg("a"), progress=False)
-    src = tmp_path / "a" / "model.safetensors"
-    train(extended_cfg("b", init=str(src), init_extend=True, lr=1e-12, stage1_steps=0, stage2_steps=1), progress=False)
-    plain, ext = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
-    frame = render("test:textured", spp=4, seed=1, resolution=(40, 40))
-    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
-    b = kpcn.denoise(frame, ext, device="cpu", precision="float32")
-    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
-    spec = ext.input_spec
-    return plain, ext, spec.build(frame_to_tensors(spec.select(frame), spec.layers))
-
-
 def test_init_extend_adds_unet_albedo_kernels(tiny_dataset, tmp_path, render):
     """``albedo_kernel`` added to a trained U-Net with ``train.init_extend``: the diffuse head's new rows start with
     the gate at 0 exactly, so the model denoises a real render as the file does and remodulates with the input's
     albedo; the gate is live (the colour loss has a gradient on its zero weights); an open gate changes the colour,
     and it leaves a constant albedo constant (each albedo kernel sums to one)."""
+    import kpcn
     from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
 
     def ucfg(name, ka, **kw):
         return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(band_gain=True, albedo_kernel=ka), **kw)
 
-    plain, filt, inputs = _extended_as_before(lambda n, **kw: ucfg(n, 0, **kw), lambda n, **kw: ucfg(n, 3, **kw),
-                                              tmp_path, render)
+    train(ucfg("a", 0), progress=False)
+    src = tmp_path / "a" / "model.safetensors"
+    train(ucfg("b", 3, init=str(src), init_extend=True, lr=1e-12, stage1_steps=0, stage2_steps=1), progress=False)
+    plain, filt = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
     head = filt.diffuse.head
     assert head.out_channels == 3 * 3 + 2 + 3 * 3 + 1 and filt.specular.head.out_channels == 3 * 3 + 2
+    frame = render("test:textured", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, filt, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    spec = filt.input_spec
+    inputs = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
     with torch.no_grad():
         ks = filt.diffuse.kernels(inputs["diffuse"])
         assert ks.albedo is not None and ks.albedo[1].abs().max() <= 1e-6  # g = tanh(0)
@@ -651,27 +642,3 @@ def test_converged_max_noise_leaves_out_the_noisy_pixels_of_converged_patches(ti
     cfg.name, cfg.model["input_spec"] = "cmn2", "split_novar"
     with pytest.raises(ConfigError, match="converged_max_noise.*split_novar"):
         train(cfg, progress=False)
-
-
-def test_init_extend_adds_an_albedo_guide(tiny_dataset, tmp_path, render):
-    """``albedo_guide`` added to a trained U-Net with albedo kernels (``train.init_extend``): its 1x1 starts at zero, so
-    the model denoises a real render as the file does; the 1x1 is live (the colour loss has a gradient on it), and
-    once it is not zero the albedo the colour is remodulated with changes while a constant albedo stays constant."""
-
-    def ucfg(ag):
-        return lambda name, **kw: _tiny_unet_cfg(tiny_dataset, tmp_path, name,
-                                                 dict(band_gain=True, albedo_kernel=3, albedo_guide=ag), **kw)
-
-    plain, guided, inputs = _extended_as_before(ucfg(0), ucfg(4), tmp_path, render)
-    assert guided.diffuse.albedo_guide.out_channels == 4 and guided.specular.albedo_guide is None
-    head = guided.diffuse.albedo_guide_head
-    head.weight.requires_grad_(True)
-    guided(inputs)["color"].square().mean().backward()
-    assert head.weight.grad.abs().max() > 0
-    with torch.no_grad():
-        head.weight.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(0))
-        head.bias[-1] = 2.0  # the gate open
-        out = guided(inputs)
-        assert (out["albedo"] - plain(inputs)["albedo"]).abs().max() > 1e-2
-        flat = dict(inputs, albedo=torch.full_like(inputs["albedo"], 0.37))
-        torch.testing.assert_close(guided(flat)["albedo"], flat["albedo"], rtol=0, atol=1e-6)

@@ -1,8 +1,7 @@
 """The weights a training run starts from: ``train.init`` (a weights file or a shipped ``model:tag``), and
 ``train.init_extend``, which lets the config's model extend the file's (more input channels, a precision gate,
-a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains, an albedo
-guide) so that it starts from the file's outputs; with ``train.init_prune`` also narrower U-Net levels (a start
-for training, not the file's outputs)."""
+a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains) so that it starts from the file's
+outputs; with ``train.init_prune`` also narrower U-Net levels (a start for training, not the file's outputs)."""
 from __future__ import annotations
 
 import dataclasses
@@ -33,7 +32,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
-                  "albedo_clamp", "specular_widths", "albedo_guide"}
+                  "albedo_clamp", "specular_widths"}
     free = {"name"} | (extendable if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
@@ -75,8 +74,7 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
       albedo gate's: 0, so the albedo is the input's).
     * A conv weight with a smaller odd kernel (a 1x1 U-Net guide in a model whose guide is 3x3) becomes the
       centre taps of the model's kernel, zero elsewhere.
-    * A precision gate, the head of a coarser kernel level (``heads.<i>``) or an albedo guide
-      (``UNetConfig.albedo_guide``: its 1x1 starts at zero, the file's albedo) that the file lacks takes
+    * A precision gate, or the head of a coarser kernel level (``heads.<i>``), that the file lacks takes
       the model's own initial value.
     * A U-Net decoder's first conv over ``[nearest_up2(coarse), skip]`` (3x3 taps on both) into a model with
       ``up_kernel: 1`` (:class:`~kpcn.models.layers.UpAddConv`): the skip's taps as they are, the coarse
@@ -92,9 +90,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     out = dict(state)
     for k, t in target.items():
         if k not in state:
-            if not (k.endswith(".gate") or re.search(r"(^|\.)(heads\.\d+|albedo_guide(_head)?)\.(weight|bias)$", k)):
-                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate, a coarser "
-                                  f"kernel level or an albedo guide can be added)")
+            if not (k.endswith(".gate") or re.search(r"(^|\.)heads\.\d+\.(weight|bias)$", k)):
+                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate or a coarser "
+                                  f"kernel level can be added)")
             out[k] = t.detach().clone()
     groups, source_groups = groups or {}, source_groups or {}
     for k, v in state.items():

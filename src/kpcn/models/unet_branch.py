@@ -82,16 +82,6 @@ class UNetBranch(nn.Module):
                 self.head.bias[k * k + self.head_layout[1]:][: ka * ka].copy_(
                     kernel_prior_bias(ka, cfg.init_sigma, cfg.logit_scale))
         self.apply_albedo = KernelApply(ka, "replicate") if ka else None
-        ag = cfg.albedo_guide if ka else 0
-        #: UNetConfig.albedo_guide: a 3x3 conv of the full-resolution features and a 1x1 (zero at the start) added to
-        #: the albedo logits and gate
-        self.albedo_guide = nn.Conv2d(c_in, ag, 3) if ag else None
-        self.albedo_guide_head = Conv1x1(ag, ka * ka + 1, 1) if ag else None
-        if ag:
-            nn.init.kaiming_normal_(self.albedo_guide.weight, nonlinearity="relu")
-            nn.init.zeros_(self.albedo_guide.bias)
-            nn.init.zeros_(self.albedo_guide_head.weight)
-            nn.init.zeros_(self.albedo_guide_head.bias)
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0))
                                    for lv in range(1, n))
@@ -128,9 +118,6 @@ class UNetBranch(nn.Module):
         off = cfg.offset
         if off:
             groups["guide"] = ((cfg.guide_channels,), (get_input_spec(cfg.input_spec).channels,))
-        if self.albedo_guide is not None:
-            groups["albedo_guide"] = ((cfg.albedo_guide,), (get_input_spec(cfg.input_spec).channels,))
-            groups["albedo_guide_head"] = (None, (cfg.albedo_guide,))
         groups["head"] = (None, (w[0], cfg.guide_channels) if off else (w[0],))
         for lv in range(1, cfg.kernel_scales):
             groups[f"heads.{lv - 1}"] = (None, (w[lv - off],))
@@ -157,15 +144,6 @@ class UNetBranch(nn.Module):
         with self._lowp(t):
             g = self.guide(F.pad(t, (r, r, r, r) if pad_rows else (r, r, 0, 0), mode="replicate"))
         return relu_(g).float()
-
-    def albedo_guide_of(self, t: torch.Tensor, pad_rows: bool = True) -> torch.Tensor:
-        """``UNetConfig.albedo_guide``: ``relu(conv3x3(t))`` of transformed full-resolution features ``(B, C, H, W)``,
-        replicate-padded by one pixel (with ``pad_rows=False`` only the columns: a band that brings a row each side,
-        ``H - 2`` rows), in :attr:`compute_dtype`: ``(B, albedo_guide, H, W)``. The albedo logits add
-        ``albedo_guide_head`` of it."""
-        with self._lowp(t):
-            g = self.albedo_guide(F.pad(t, (1, 1, 1, 1) if pad_rows else (1, 1, 0, 0), mode="replicate"))
-        return relu_(g)
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
         a = self.cfg.alignment
@@ -259,8 +237,6 @@ class UNetBranch(nn.Module):
             kernels.append(_bounded_softmax(z[:, :kk], s))
             if level == 0 and self.albedo_kernel:
                 za = z[:, kk + nb:].float()
-                if self.albedo_guide is not None:
-                    za = za + self.albedo_guide_head(self.albedo_guide_of(self._pad(t)).float())
                 bound = albedo_bound(self._pad(x[:, ALBEDO_VARIANCE:ALBEDO_VARIANCE + 1].float()), self.cfg.albedo_clamp) \
                     if self.cfg.albedo_clamp else None
                 albedo = (_bounded_softmax(za[:, :-1], s), gate_of(za[:, -1:], self.cfg.albedo_gate_gain), bound)

@@ -63,12 +63,6 @@ class UNetConfig:
         albedo_clamp: 0 (off) or ``c > 0``: the albedo's correction ``K_a ⊛ a - a`` is clamped to ``± c·σ_a``,
             ``σ_a`` the standard deviation of the pixel's albedo mean (the ``kpcn_split`` features' albedo
             variance), so the filter moves an albedo only within its own noise: a converged albedo stays as it is.
-        albedo_guide: 0 (off) or ``c``: with ``albedo_kernel`` and ``stem: half``, a 3×3 conv of ``c`` channels over the
-            full-resolution features (replicate padding), a ReLU and a 1×1, added to the albedo kernel's logits and
-            gate. The rest of the full-resolution head sees a pixel's neighbours only through the half-resolution
-            levels, and an albedo's noise is per pixel (sub-pixel texture and edges): remodulating the default's 4-spp
-            output with the 2048-spp albedo instead of its filtered one is worth 0.8 dB on the report. The 1×1
-            starts at zero (``train.init_extend`` adds it to a file without it: the file's output).
     """
 
     input_spec: str = "kpcn_split"
@@ -90,7 +84,6 @@ class UNetConfig:
     albedo_gate_gain: float = 1.0
     albedo_clamp: float = 0.0
     specular_widths: list[int] | None = None
-    albedo_guide: int = 0
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -134,11 +127,6 @@ class UNetConfig:
         if self.albedo_kernel and "diffuse" not in spec.branches:
             raise ValueError(f"UNetConfig.albedo_kernel needs an input spec with a diffuse branch (one that "
                              f"remodulates with the albedo); {spec.name!r} has {spec.branches}")
-        if isinstance(self.albedo_guide, bool) or not isinstance(self.albedo_guide, int) or self.albedo_guide < 0:
-            raise ValueError(f"UNetConfig.albedo_guide must be 0 (off) or a positive integer, got {self.albedo_guide!r}")
-        if self.albedo_guide and not (self.albedo_kernel and self.stem == "half"):
-            raise ValueError("UNetConfig.albedo_guide needs albedo_kernel and stem: half (it adds to the full-resolution "
-                             "head's albedo logits)")
         if self.band_gain and self.kernel_scales < 2:
             raise ValueError("UNetConfig.band_gain needs kernel_scales >= 2 (the gain is of the band a coarser "
                              "kernel level does not replace)")
@@ -174,7 +162,7 @@ class UNetConfig:
         decoder = sum(s * (1 + c) for s in scales[:-1])
         # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution (the guide's
         # reach at full resolution, guide_kernel // 2, counts where it exceeds that)
-        return encoder + decoder + (max(3, self.guide_kernel // 2, 1 if self.albedo_guide else 0) if self.offset else 0)
+        return encoder + decoder + (max(3, self.guide_kernel // 2) if self.offset else 0)
 
     @property
     def kernel_radius(self) -> int:

@@ -90,14 +90,8 @@ class RowStream:
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, device=device, dtype=branch.compute_dtype or dtype)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
-        #: UNetConfig.albedo_guide: its hidden channels at full resolution (in the conv stack's dtype, as the guide)
-        ag = branch.albedo_guide
-        self._aguide = None if ag is None else torch.empty(1, ag.out_channels, hp, wp, device=device,
-                                                            dtype=branch.compute_dtype or dtype)
-        #: rows each side the full-resolution convs read (the guide's and the albedo guide's reach)
-        self._reach = max(cfg.guide_kernel // 2, 1 if ag is not None else 0)
         self._fed = 0
-        self._ctx, self._next = None, 0  # the guides' rows in waiting (a reach > 0; _feed_guide)
+        self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
         self._coarse: dict[str, torch.Tensor] = {}
         #: the albedo at full resolution (a branch with albedo kernels), and with albedo_clamp its bound as a 4th channel
@@ -137,11 +131,10 @@ class RowStream:
         self._fed = r0 + n
 
     def _feed_guide(self, r0: int, t: torch.Tensor) -> None:
-        """The guide (and the albedo guide) of the rows a band completes. Convs that read ``r`` rows each side
-        (:attr:`_reach`: a ``guide_kernel`` of ``2r + 1``, the albedo guide's 3x3) trail the bands by ``r`` rows:
-        :attr:`_ctx` keeps the transformed rows the next band's first rows read (replicates of row 0 above the
-        frame), and :meth:`run` finishes the last ``r`` rows."""
-        r = self._reach
+        """The guide of the rows a band completes. A ``guide_kernel`` of ``2r + 1`` reads ``r`` rows each side, so
+        the guide trails the bands by ``r`` rows: :attr:`_ctx` keeps the transformed rows the next band's first
+        guide rows read (replicates of row 0 above the frame), and :meth:`run` finishes the last ``r`` rows."""
+        r = self.cfg.guide_kernel // 2
         if not r:
             self._guide[..., r0:r0 + t.shape[-2], :] = self.branch.guide_of(t)
             return
@@ -152,20 +145,12 @@ class RowStream:
         self._ctx = ext[..., -2 * r:, :]
 
     def _guide_rows(self, ext: torch.Tensor) -> None:
-        """Guide rows ``[next, next + len(ext) - 2r)`` of transformed rows ``ext`` ``[next - r, ...)``, ``r`` the
-        :attr:`_reach`; each conv reads the rows it reaches of them."""
-        r = self._reach
+        """Guide rows ``[next, next + len(ext) - 2r)`` of transformed rows ``ext`` ``[next - r, ...)``."""
+        r = self.cfg.guide_kernel // 2
         m = ext.shape[-2] - 2 * r
         if m <= 0:
             return
-        rows = slice(self._next, self._next + m)
-        rg = self.cfg.guide_kernel // 2
-        if rg:
-            self._guide[..., rows, :] = self.branch.guide_of(ext[..., r - rg:r + m + rg, :], pad_rows=False)
-        else:
-            self._guide[..., rows, :] = self.branch.guide_of(ext[..., r:r + m, :])
-        if self._aguide is not None:
-            self._aguide[..., rows, :] = self.branch.albedo_guide_of(ext[..., r - 1:r + m + 1, :], pad_rows=False)
+        self._guide[..., self._next:self._next + m, :] = self.branch.guide_of(ext, pad_rows=False)
         self._next += m
 
     def run(self, summary: torch.Tensor | None = None) -> None:
@@ -173,7 +158,7 @@ class RowStream:
         if self._fed != self.padded_size[0]:
             raise ValueError(f"RowStream.run: rows 0..{self._fed} of {self.padded_size[0]} fed")
         net, cfg = self.branch, self.cfg
-        r = self._reach
+        r = cfg.guide_kernel // 2
         if r:  # the last r guide rows read r replicates of the frame's last row below it
             self._guide_rows(torch.cat([self._ctx, self._ctx[..., -1:, :].expand(-1, -1, r, -1)], dim=-2))
             self._ctx = None
@@ -236,10 +221,7 @@ class RowStream:
         i0, n = r0 - e0, r1 - r0
         out = {}
         if self._albedo is not None:  # before the logits' softmax (in place in z)
-            za = z[:, kk + nb:]
-            if self._aguide is not None:
-                za = za + self.branch.albedo_guide_head(self._aguide[..., e0:e1, :].float())
-            out[self.ALBEDO] = self._albedo_rows(za, e0, e1)[..., i0:i0 + n, :]
+            out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:], e0, e1)[..., i0:i0 + n, :]
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         for key, full in self._full.items():
             colour = F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
