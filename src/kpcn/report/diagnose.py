@@ -1,0 +1,179 @@
+"""Where a split-input model's error comes from: ``python -m kpcn.report.diagnose``.
+
+On a report's cached renders (``<out>/<name>/renders``), for each scene and spp, a model's output against the
+reference beside the same output with one of its parts replaced by the reference's:
+
+* ``diffuse=ref`` / ``specular=ref``: the branch's radiance replaced (what the other branch's error is);
+* ``albedo=ref``: the diffuse branch's output remodulated with the reference's albedo rather than the one the model
+  remodulates with (what the albedo's own noise costs: a 4-spp albedo is the mean of 4 sub-pixel texture samples);
+
+and how bright the output is against the reference (mean ratios, per part), and its error in PSNR's tone map split
+into a low band (blurred by a Gaussian of ``--sigma`` pixels) and the rest (MSE of each). OIDN gets the same rows where it is installed.
+A diagnosis, not a figure of merit: replacing a part by the reference's is an oracle no denoiser has.
+
+Example::
+
+    python -m kpcn.report.diagnose --renders results/rep/s16/renders --model unet_kpcn:wide64s --spp 4 8
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter
+
+from ..data import pair_tensors
+from ..inputs import SPECULAR_LOG_MAX, split_reconstruct
+from ..io.frame import Frame
+from ..io.read import read_exr
+from ..metrics import psnr, relmse, tonemap
+
+__all__ = ["diagnose_frame", "find_renders", "main"]
+
+#: the columns of a model's row, in order (relMSE each; psnr the output's; the bands tone-mapped MSE; ratios
+#: mean(output) / mean(reference))
+MODEL_KEYS = ("relmse", "psnr", "diffuse=ref", "specular=ref", "albedo=ref", "psnr albedo=ref", "low band",
+              "high band", "ratio", "diffuse ratio", "specular ratio")
+OIDN_KEYS = ("relmse", "psnr", "low band", "high band", "ratio")
+
+
+def _hwc(t: torch.Tensor) -> np.ndarray:
+    return t[0].permute(1, 2, 0).numpy()
+
+
+def _bands(x: np.ndarray, ref: np.ndarray, sigma: float) -> tuple[float, float]:
+    """MSE of the tone-mapped error's low band (Gaussian of ``sigma`` px, per channel) and of the rest, in the tone
+    map PSNR is computed in (``kpcn.metrics.tonemap``: a relMSE split would spread a bright pixel's error onto dark
+    neighbours, each weighed by its own 1 / (ref² + eps))."""
+    e = tonemap(x) - tonemap(ref)
+    low = np.stack([gaussian_filter(e[..., c], sigma, mode="nearest") for c in range(e.shape[-1])], -1)
+    return float(np.mean(low**2)), float(np.mean((e - low) ** 2))
+
+
+def _ratio(x: np.ndarray, ref: np.ndarray) -> float:
+    m = float(ref.mean())
+    return float(x.mean()) / m if m > 0 else float("nan")
+
+
+def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0, oidn: bool = False) -> dict[str, dict[str, float]]:
+    """``{"model": {key: value for MODEL_KEYS}, "oidn": {...}}`` for one noisy frame and its reference.
+
+    ``net`` a model with a ``diffuse`` / ``specular`` split input spec (``kpcn_split``, ``split_novar``); ``oidn``:
+    also OIDN's row (``kpcn.baselines``)."""
+    spec = net.input_spec
+    if set(spec.branches) != {"diffuse", "specular"}:
+        raise ValueError(f"diagnose: needs a model with the diffuse/specular split; {spec.name!r} has {spec.branches}")
+    t = pair_tensors(noisy, ref, spec)
+    with torch.no_grad():
+        out = net({k: t[k] for k in (*spec.branches, "albedo")})
+    colour = _hwc(out["color"])
+    spec_rad = _hwc(torch.expm1(out["specular"].clamp(0.0, SPECULAR_LOG_MAX)))
+    diff_rad = colour - spec_rad
+    ref_d, ref_s = np.clip(ref["diffuse"], 0, None), np.clip(ref["specular"], 0, None)
+    target = ref_d + ref_s
+    ref_albedo = torch.as_tensor(np.ascontiguousarray(ref["albedo"])).permute(2, 0, 1)[None].float()
+    remod = _hwc(split_reconstruct({"diffuse": out["diffuse"], "specular": out["specular"]}, {"albedo": ref_albedo}))
+    low, high = _bands(colour, target, sigma)
+    row = {"relmse": relmse(colour, target), "psnr": psnr(colour, target),
+           "diffuse=ref": relmse(ref_d + spec_rad, target), "specular=ref": relmse(diff_rad + ref_s, target),
+           "albedo=ref": relmse(remod, target), "psnr albedo=ref": psnr(remod, target), "low band": low,
+           "high band": high, "ratio": _ratio(colour, target), "diffuse ratio": _ratio(diff_rad, ref_d),
+           "specular ratio": _ratio(spec_rad, ref_s)}
+    res = {"model": row}
+    if oidn:
+        from ..baselines import oidn_denoise, oidn_guides
+
+        albedo, normal = oidn_guides(noisy)
+        o = oidn_denoise(noisy["color"], albedo=albedo, normal=normal)
+        low, high = _bands(o, target, sigma)
+        res["oidn"] = {"relmse": relmse(o, target), "psnr": psnr(o, target), "low band": low, "high band": high,
+                       "ratio": _ratio(o, target)}
+    return res
+
+
+@dataclass
+class SceneFiles:
+    scene: str
+    folder: str
+
+    def input(self, spp: int) -> str | None:
+        found = sorted(glob.glob(os.path.join(self.folder, f"input_{spp}spp_*.exr")))
+        return found[0] if found else None
+
+    def reference(self) -> str | None:
+        found = sorted(glob.glob(os.path.join(self.folder, "reference_*.exr")))
+        return found[0] if found else None
+
+
+def find_renders(root: str) -> list[SceneFiles]:
+    """The scenes of a report's renders folder (``<scene>/<W>x<H>-<fingerprint>/`` with a reference), by name."""
+    out = []
+    for scene in sorted(os.listdir(root)) if os.path.isdir(root) else []:
+        for folder in sorted(glob.glob(os.path.join(root, scene, "*x*-*"))):
+            sf = SceneFiles(scene, folder)
+            if sf.reference():
+                out.append(sf)
+    if not out:
+        raise FileNotFoundError(f"diagnose: no renders with a reference under {root!r} (a report's "
+                                f"<out>/<name>/renders folder)")
+    return out
+
+
+def _mean(values) -> float:
+    """The mean of the values that are not nan (a ratio is nan where the reference has none of that part), or nan."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def _line(label: str, row: dict, keys) -> str:
+    cells = [f"{row[k]:.3f}" if k.startswith("psnr") else f"{row[k]:.4f}" if "ratio" in k
+             else f"{row[k]:.3e}" if "band" in k else f"{row[k]:.6f}" for k in keys]
+    return f"| {label} | " + " | ".join(cells) + " |"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m kpcn.report.diagnose", description=__doc__.split("\n\n")[0])
+    p.add_argument("--renders", required=True, help="a report's renders folder (<out>/<name>/renders)")
+    p.add_argument("--model", default=None, help="weights file or model:tag (default: the shipped default)")
+    p.add_argument("--spp", type=int, nargs="+", default=[4])
+    p.add_argument("--sigma", type=float, default=3.0, help="the low band's Gaussian (pixels)")
+    p.add_argument("--no-oidn", action="store_true")
+    p.add_argument("--threads", type=int, default=None)
+    args = p.parse_args(argv)
+    from ..baselines import oidn_available
+    from ..inference.weights import load_model
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    net = load_model(args.model, device="cpu").eval()
+    oidn = not args.no_oidn and oidn_available()
+    scenes = find_renders(args.renders)
+    for spp in args.spp:
+        rows = []
+        print(f"\n{spp} spp | " + " | ".join(MODEL_KEYS))
+        for sf in scenes:
+            path = sf.input(spp)
+            if path is None:
+                print(f"| {sf.scene} | no {spp}-spp input |")
+                continue
+            res = diagnose_frame(net, read_exr(path), read_exr(sf.reference()), args.sigma, oidn)
+            rows.append((sf.scene, res))
+            print(_line(sf.scene, res["model"], MODEL_KEYS))
+        if not rows:
+            continue
+        print(_line("mean", {k: _mean([r["model"][k] for _, r in rows]) for k in MODEL_KEYS}, MODEL_KEYS))
+        if oidn:
+            print(f"OIDN, {spp} spp | " + " | ".join(OIDN_KEYS))
+            for scene, r in rows:
+                print(_line(scene, r["oidn"], OIDN_KEYS))
+            print(_line("mean", {k: _mean([r["oidn"][k] for _, r in rows]) for k in OIDN_KEYS}, OIDN_KEYS))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
