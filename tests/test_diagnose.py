@@ -57,3 +57,12 @@ def test_cli_reads_a_renders_folder_and_refuses_an_empty_one(net, render, tmp_pa
     assert "| test_textured | 0.0" in out and "| mean |" in out and "no 8-spp input" in out
     with pytest.raises(FileNotFoundError, match="no renders with a reference"):
         find_renders(str(tmp_path / "nothing"))
+
+
+def test_a_model_without_the_diffuse_specular_split_is_refused(render):
+    from kpcn.inference.weights import load_model
+
+    can = load_model("kpcn:can_small", device="cpu")
+    frame = render("test:textured", spp=4, seed=1, resolution=RES)
+    with pytest.raises(ValueError, match="needs a model with the diffuse/specular split; 'color_albedo_normal_noise' has"):
+        diagnose_frame(can, frame, frame)
