@@ -64,5 +64,6 @@ def test_a_model_without_the_diffuse_specular_split_is_refused(render):
 
     can = load_model("kpcn:can_small", device="cpu")
     frame = render("test:textured", spp=4, seed=1, resolution=RES)
-    with pytest.raises(ValueError, match="needs a model with the diffuse/specular split; 'color_albedo_normal_noise' has"):
+    with pytest.raises(ValueError,
+                       match="needs a model with the diffuse/specular split; 'color_albedo_normal_noise' has"):
         diagnose_frame(can, frame, frame)

@@ -73,7 +73,8 @@ def test_coarse_term_weighs_lost_energy_not_zero_mean_grain():
     assert float(log_l1(grain, y)) > 0.05
     assert float(coarse_log_l1(grain, y)) == pytest.approx(0.0, abs=1e-6)
     assert float(coarse_log_l1(0.97 * y, y)) > 0.01
-    assert float(coarse_log_l1(0.97 * y[..., :8, :8], y[..., :8, :8], (16, 32))) > 0.01  # pools past the side: one that fits
+    # pools past the side: one pool of the whole side
+    assert float(coarse_log_l1(0.97 * y[..., :8, :8], y[..., :8, :8], (16, 32))) > 0.01
     x = y * 0.9
     plain = float(create_loss("log_msssim")(x, y))
     assert float(create_loss("log_msssim", {"coarse_weight": 0.0})(x, y)) == plain

@@ -96,13 +96,20 @@ def laplacian_of_gaussian(x: torch.Tensor, size: int = 5, sigma: float = 1.0) ->
     return F.conv2d(F.pad(x, [size // 2] * 4, mode="replicate"), k, groups=c)
 
 
+def _log_pair(x: torch.Tensor, y: torch.Tensor, eps: float):
+    """``(log(1 + x), log(1 + y), 1 / (log(1 + y) + eps))``, the last without gradient."""
+    xl, yl = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
+    return xl, yl, 1.0 / (yl.detach() + eps)
+
+
+def _weighted_l1(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return ((a - b).abs() * w).mean()
+
+
 @register_loss("log")
 def log_loss(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-2) -> torch.Tensor:
-    xl, yl = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
-    w = 1.0 / (yl.detach() + eps)
-    spatial = ((xl - yl).abs() * w).mean()
-    freq = ((laplacian_of_gaussian(xl) - laplacian_of_gaussian(yl)).abs() * w).mean()
-    return 0.5 * spatial + 0.5 * freq
+    xl, yl, w = _log_pair(x, y, eps)
+    return 0.5 * _weighted_l1(xl, yl, w) + 0.5 * _weighted_l1(laplacian_of_gaussian(xl), laplacian_of_gaussian(yl), w)
 
 
 def _gauss_window(size: int = 7, sigma: float = 1.5, dtype=torch.float32) -> torch.Tensor:
@@ -158,13 +165,12 @@ def _ms_scales(x: torch.Tensor) -> int:
 
 def log_l1(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-2) -> torch.Tensor:
     """The log loss's spatial term: ``mean |log(1 + x) - log(1 + y)| / (log(1 + y) + eps)``."""
-    xl, yl = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
-    return ((xl - yl).abs() / (yl.detach() + eps)).mean()
+    return _weighted_l1(*_log_pair(x, y, eps))
 
 
 def coarse_log_l1(x: torch.Tensor, y: torch.Tensor, pools=(4, 16)) -> torch.Tensor:
     """:func:`log_l1` of ``x`` and ``y`` ``(B, C, H, W)`` average-pooled ``p × p`` (linear), averaged over the
-    pools ``p`` that fit the image (at least one: the largest pool that does)."""
+    pools ``p`` that fit the image; where none fits, one pool of the image's shorter side."""
     side = min(x.shape[-2:])
     fit = [p for p in pools if p <= side] or [max(1, side)]
     return sum(log_l1(F.avg_pool2d(x, p), F.avg_pool2d(y, p)) for p in fit) / len(fit)

@@ -1,7 +1,8 @@
 """The weights a training run starts from: ``train.init`` (a weights file or a shipped ``model:tag``), and
 ``train.init_extend``, which lets the config's model extend the file's (more input channels, a precision gate,
-a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains) so that it starts from the file's
-outputs; with ``train.init_prune`` also narrower U-Net levels (a start for training, not the file's outputs)."""
+a demodulation weight, a coarser U-Net kernel level, wider U-Net levels, U-Net high-band gains) so that it starts
+from the file's outputs; with ``train.init_prune`` also narrower U-Net levels (a start for training, not the file's
+outputs)."""
 from __future__ import annotations
 
 import dataclasses
@@ -152,8 +153,8 @@ def _group_index(k: str, src: tuple[int, ...], dst: tuple[int, ...], path,
     """The file's channels (groups ``src``) that the model keeps, and where they sit among the model's (groups
     ``dst``): each group's first ``min(src, dst)`` channels (a narrower group only with ``prune``)."""
     if len(src) != len(dst) or (not prune and any(a > b for a, b in zip(src, dst))):
-        raise ConfigError(f"train.init_extend: {path}'s {k} has channel groups {src}; the model's are {dst} "
-                          f"({'the groups must match one to one' if prune else 'a group can only grow without train.init_prune'})")
+        why = "the groups must match one to one" if prune else "a group can only grow without train.init_prune"
+        raise ConfigError(f"train.init_extend: {path}'s {k} has channel groups {src}; the model's are {dst} ({why})")
     src_at = [sum(src[:i]) for i in range(len(src))]
     dst_at = [sum(dst[:i]) for i in range(len(dst))]
     n = [min(a, b) for a, b in zip(src, dst)]

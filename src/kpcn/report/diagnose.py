@@ -8,7 +8,8 @@ reference beside the same output with one of its parts replaced by the reference
   remodulates with (what the albedo's own noise costs: a 4-spp albedo is the mean of 4 sub-pixel texture samples);
 
 and how bright the output is against the reference (mean ratios, per part), and its error in PSNR's tone map split
-into a low band (blurred by a Gaussian of ``--sigma`` pixels) and the rest (MSE of each). OIDN gets the same rows where it is installed.
+into a low band (blurred by a Gaussian of ``--sigma`` pixels) and the rest (MSE of each). OIDN, as the report runs it,
+gets the same rows where it is installed.
 A diagnosis, not a figure of merit: replacing a part by the reference's is an oracle no denoiser has.
 
 Example::
@@ -59,11 +60,12 @@ def _ratio(x: np.ndarray, ref: np.ndarray) -> float:
     return float(x.mean()) / m if m > 0 else float("nan")
 
 
-def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0, oidn: bool = False) -> dict[str, dict[str, float]]:
+def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
+                   oidn: bool = False) -> dict[str, dict[str, float]]:
     """``{"model": {key: value for MODEL_KEYS}, "oidn": {...}}`` for one noisy frame and its reference.
 
     ``net`` a model with a ``diffuse`` / ``specular`` split input spec (``kpcn_split``, ``split_novar``); ``oidn``:
-    also OIDN's row (``kpcn.baselines``)."""
+    also OIDN's row (the report's :func:`~kpcn.report.methods.oidn_method`)."""
     spec = net.input_spec
     if set(spec.branches) != {"diffuse", "specular"}:
         raise ValueError(f"diagnose: needs a model with the diffuse/specular split; {spec.name!r} has {spec.branches}")
@@ -74,7 +76,7 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0, oidn: bool
     spec_rad = _hwc(torch.expm1(out["specular"].clamp(0.0, SPECULAR_LOG_MAX)))
     diff_rad = colour - spec_rad
     ref_d, ref_s = np.clip(ref["diffuse"], 0, None), np.clip(ref["specular"], 0, None)
-    target = ref_d + ref_s
+    target = _hwc(t["y_color"])  # the spec's colour target: the two parts' sum
     ref_albedo = torch.as_tensor(np.ascontiguousarray(ref["albedo"])).permute(2, 0, 1)[None].float()
     remod = _hwc(split_reconstruct({"diffuse": out["diffuse"], "specular": out["specular"]}, {"albedo": ref_albedo}))
     low, high = _bands(colour, target, sigma)
@@ -85,10 +87,9 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0, oidn: bool
            "specular ratio": _ratio(spec_rad, ref_s)}
     res = {"model": row}
     if oidn:
-        from ..baselines import oidn_denoise, oidn_guides
+        from .methods import oidn_method
 
-        albedo, normal = oidn_guides(noisy)
-        o = oidn_denoise(noisy["color"], albedo=albedo, normal=normal)
+        o = oidn_method().fn(noisy)
         low, high = _bands(o, target, sigma)
         res["oidn"] = {"relmse": relmse(o, target), "psnr": psnr(o, target), "low band": low, "high band": high,
                        "ratio": _ratio(o, target)}
