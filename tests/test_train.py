@@ -162,6 +162,22 @@ def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tm
     scenes = {p.scene for p in train_pairs + val_pairs}
     assert {p.scene for p in base_train + base_val} < scenes and len(scenes) == len({p.scene for p in base_train + base_val}) + 2
     assert any(str(p.input_path).startswith(str(other)) for p in train_pairs + val_pairs)
+    # data.spp_by_root: the folder above `other` lends only its 4-spp inputs, the root keeps both; a longer
+    # (nearer) folder wins over a shorter one, and a malformed entry is refused by name
+    cfg.data.spp_by_root = {str(tmp_path): [4], str(tmp_path / "nowhere"): [8]}
+    by_root = split_pairs(cfg, progress=False)
+    from_other = [p for p in by_root[0] + by_root[1] if str(p.input_path).startswith(str(other))]
+    from_root = [p for p in by_root[0] + by_root[1] if not str(p.input_path).startswith(str(other))]
+    assert from_other and {p.spp for p in from_other} == {4} and {p.spp for p in from_root} == {4, 8}
+    cfg.data.spp_by_root = {str(tmp_path): [4], str(other): [8]}
+    assert {p.spp for p in split_pairs(cfg, progress=False)[0] if str(p.input_path).startswith(str(other))} == {8}
+    cfg.data.spp_by_root = {str(other): [16]}  # a count the data set was not rendered with
+    with pytest.raises(DatasetError, match="16"):
+        split_pairs(cfg, progress=False)
+    from kpcn.config import ConfigError
+    with pytest.raises(ConfigError, match=r"spp_by_root\['x'\]"):
+        load_config(RunConfig, None, ["data.root=x", "data.spp_by_root={x: [0]}"])
+    cfg.data.spp_by_root = {}
     # converged pairs only from the data sets whose references are clean enough (other's have 32 spp, root's 128)
     cfg.data.converged_inputs = True
     every = {p.scene for p in split_pairs(cfg, progress=False)[0] if p.spp == CONVERGED_SPP}

@@ -45,6 +45,11 @@ class DataConfig:
     val_root: str | None = None  #: held-out frames; None: the last `val_scenes` scenes of root
     val_scenes: int = 2
     spp: list[int] | None = None  #: input spp to train on (None: all)
+    #: input spp per folder, overriding ``spp`` for the data sets (root, extra_roots, val_root) at or under each
+    #: folder; the longest matching folder wins. E.g. ``{data/r3: [2, 4, 8, 16]}``: a set of scenes that helps
+    #: the low spp but not the high ones lends only its low-spp inputs (its converged pairs still follow
+    #: ``converged_inputs``)
+    spp_by_root: dict[str, list[int]] = field(default_factory=dict)
     #: also train on each training scene's reference as its own input (target = itself): the
     #: converged end of the spp range, so the model learns to leave a clean frame alone
     converged_inputs: bool = False
@@ -97,6 +102,14 @@ class DataConfig:
                 raise ConfigError("data.spp: must list at least one sample count (null: all)")
             if min(self.spp) < 1:
                 raise ConfigError(f"data.spp: every sample count must be >= 1, got {self.spp!r}")
+        if not isinstance(self.spp_by_root, dict):
+            raise ConfigError(f"data.spp_by_root: expected a mapping of folder -> sample counts, got "
+                              f"{self.spp_by_root!r}")
+        for folder, counts in self.spp_by_root.items():
+            if not isinstance(counts, list) or not counts or any(
+                    isinstance(c, bool) or not isinstance(c, int) or c < 1 for c in counts):
+                raise ConfigError(f"data.spp_by_root[{folder!r}]: expected a list of sample counts >= 1, got "
+                                  f"{counts!r}")
         if not self.render_spp or min(self.render_spp) < 2:
             raise ConfigError(f"data.render_spp: every sample count must be >= 2, got {self.render_spp!r}")
         res = self.render_resolution

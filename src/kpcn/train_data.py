@@ -10,7 +10,7 @@ from .train_config import RunConfig
 
 log = logging.getLogger("kpcn.train")  # the training log, whichever module of it speaks
 
-__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP", "store_dir"]
+__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP", "store_dir", "root_spp"]
 
 
 def _is_default_dataset(status, d) -> bool:
@@ -82,11 +82,11 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
     root = ensure_dataset(cfg, _rank_of_world() == 0, progress)
     if _rank_of_world() == 0:
         warn_outdated_albedo([root, *cfg.data.extra_roots])
-    pairs = read_manifest(root, cfg.data.spp)
+    pairs = read_manifest(root, root_spp(cfg.data, root))
     ref_spp = dict.fromkeys((p.scene for p in pairs), _ref_spp(root))  # one manifest read per data set
     for extra in cfg.data.extra_roots:  # more rendered data sets (complete ones; never rendered here)
         try:
-            more = read_manifest(extra, cfg.data.spp)
+            more = read_manifest(extra, root_spp(cfg.data, extra))
         except FileNotFoundError as exc:
             raise DatasetError(f"data.extra_roots: {exc}") from None
         clash = sorted({p.scene for p in more} & {p.scene for p in pairs})
@@ -98,7 +98,7 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
         ref_spp.update(dict.fromkeys((p.scene for p in more), _ref_spp(extra)))
     if cfg.data.val_root:
         try:
-            val = read_manifest(cfg.data.val_root, cfg.data.spp)
+            val = read_manifest(cfg.data.val_root, root_spp(cfg.data, cfg.data.val_root))
         except FileNotFoundError as exc:
             raise DatasetError(f"data.val_root: {exc}") from None
         train = pairs
@@ -118,6 +118,18 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
                                f"{' '.join(map(str, sorted(set(ref_spp.values()))))}); lower it or render one")
         converged = converged_pairs(clean) * cfg.data.converged_weight
     return train + converged, val
+
+
+def root_spp(data, root) -> list[int] | None:
+    """The input spp trained on from the data set in ``root``: ``data.spp_by_root``'s entry for the longest folder
+    at or above it, else ``data.spp`` (None: all)."""
+    path = Path(root).resolve()
+    best, spp = -1, data.spp
+    for folder, counts in data.spp_by_root.items():
+        f = Path(folder).resolve()
+        if (path == f or f in path.parents) and len(f.parts) > best:
+            best, spp = len(f.parts), counts
+    return spp
 
 
 def _ref_spp(root) -> int:
