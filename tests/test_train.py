@@ -169,6 +169,19 @@ def test_extra_roots_add_their_scenes_and_refuse_repeated_names(tiny_dataset, tm
     from_other = [p for p in by_root[0] + by_root[1] if str(p.input_path).startswith(str(other))]
     from_root = [p for p in by_root[0] + by_root[1] if not str(p.input_path).startswith(str(other))]
     assert from_other and {p.spp for p in from_other} == {4} and {p.spp for p in from_root} == {4, 8}
+    # data.balance_spp: every scene trained on (no validation scenes), the root's 3 8-spp pairs against 5 4-spp
+    # ones, are listed twice (round(5 / 3))
+    cfg.data.val_scenes = 0
+    every = split_pairs(cfg, progress=False)[0]
+    train4 = [p for p in every if p.spp == 4]
+    train8 = [p for p in every if p.spp == 8]
+    assert (len(train4), len(train8)) == (5, 3)
+    cfg.data.balance_spp = True
+    balanced = split_pairs(cfg, progress=False)[0]
+    assert sorted(p.spp for p in balanced) == sorted([4] * len(train4) + [8] * 2 * len(train8))
+    twice = sorted(str(p.input_path) for p in train8 for _ in range(2))
+    assert sorted(str(p.input_path) for p in balanced if p.spp == 8) == twice
+    cfg.data.balance_spp, cfg.data.val_scenes = False, 1
     cfg.data.spp_by_root = {str(tmp_path): [4], str(other): [8]}
     assert {p.spp for p in split_pairs(cfg, progress=False)[0] if str(p.input_path).startswith(str(other))} == {8}
     cfg.data.spp_by_root = {str(other): [16]}  # a count the data set was not rendered with

@@ -56,6 +56,11 @@ class DataConfig:
     #: how many times each converged pair is listed (its share of the patches drawn): a model without
     #: variance layers must learn from data alone to leave a clean frame as it is
     converged_weight: int = 1
+    #: list each input spp's training pairs that many times that every spp (and the converged pairs, as one more
+    #: level) has about as many as the most common one (whole repeats, rounded): scenes lent only at some spp
+    #: (``spp_by_root``) then add variety at those spp without taking patches from the others.
+    #: ``converged_weight`` multiplies the converged pairs after it
+    balance_spp: bool = False
     #: converged pairs only from data sets whose references have at least this many spp (0: all). A
     #: reference close to the inputs' spp is still noisy: listed as its own target, it teaches the model to
     #: keep the noise of a high-spp input (measured: 1024-spp references against 128-256-spp inputs)

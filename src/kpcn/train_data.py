@@ -10,7 +10,7 @@ from .train_config import RunConfig
 
 log = logging.getLogger("kpcn.train")  # the training log, whichever module of it speaks
 
-__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP", "store_dir", "root_spp"]
+__all__ = ["ensure_dataset", "split_pairs", "converged_pairs", "CONVERGED_SPP", "store_dir", "root_spp", "balance_spp"]
 
 
 def _is_default_dataset(status, d) -> bool:
@@ -116,8 +116,22 @@ def split_pairs(cfg: RunConfig, progress: bool = True):
             raise DatasetError(f"data.converged_min_ref_spp={cfg.data.converged_min_ref_spp}: no training data set "
                                f"has references of that many spp (they have "
                                f"{' '.join(map(str, sorted(set(ref_spp.values()))))}); lower it or render one")
-        converged = converged_pairs(clean) * cfg.data.converged_weight
-    return train + converged, val
+        converged = converged_pairs(clean)
+    if cfg.data.balance_spp:
+        train, converged = balance_spp(train + converged)
+    return train + converged * cfg.data.converged_weight, val
+
+
+def balance_spp(pairs) -> tuple[list, list]:
+    """``(inputs, converged)``: ``pairs`` with each spp's pairs (the converged ones one more spp) repeated
+    ``round(n_max / n)`` times, ``n`` their count and ``n_max`` the largest count."""
+    groups: dict[int, list] = {}
+    for p in pairs:
+        groups.setdefault(p.spp, []).append(p)
+    n_max = max((len(g) for g in groups.values()), default=0)
+    out = {spp: g * max(1, round(n_max / len(g))) for spp, g in groups.items()}
+    converged = out.pop(CONVERGED_SPP, [])
+    return [p for g in out.values() for p in g], converged
 
 
 def root_spp(data, root) -> list[int] | None:
