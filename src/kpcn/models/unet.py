@@ -188,12 +188,18 @@ register_weights("unet_kpcn", "wide64a", "unet_wide64a.safetensors",
                              "noisy one), 126 k multiply-adds per pixel (configs/unet_wide64a.yaml): added to wide64u at "
                              "gate 0 and trained 9000 steps (batch 4) on the CPU on 87 + 24 scenes; +0.25 dB over "
                              "wide64u at 4 spp, 1.0-1.1x its 1080p time (where wide64s starts)")
-register_weights("unet_kpcn", "wide64s", "unet_wide64s.safetensors", default=True,
+register_weights("unet_kpcn", "wide64s", "unet_wide64s.safetensors",
                  description="unet_kpcn:wide64a with its specular branch narrowed to 48/64/96/128 channels "
                              "(specular_widths), 98 k multiply-adds per pixel, convolutions in bfloat16 where the CPU "
                              "has it (configs/unet_wide64s.yaml): pruned from wide64a (train.init_prune: each channel "
                              "group keeps its first channels) and trained 9000 steps (batch 4) on the CPU on 87 + 24 "
                              "scenes; 0.9-1.0x OIDN's 1080p time, 0.89x wide64a's")
+register_weights("unet_kpcn", "wide64b", "unet_wide64b.safetensors", default=True,
+                 description="unet_kpcn:wide64s (the same network, 98 k multiply-adds per pixel) trained 4000 more steps "
+                             "of batch 16 on the CPU (configs/unet_wide64b.yaml) on the 87 + 24 scenes at every spp "
+                             "and 229 fresh CPU scenes at 2-16 spp only (data.spp_by_root), each spp's pairs listed "
+                             "equally often (data.balance_spp); ahead of OIDN on 17 of the 21 report figures at "
+                             "4-256 spp (wide64s 16)")
 register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                  description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
                              "level through a 1x1 at its own resolution), 126 k multiply-adds per pixel, its convolutions "
