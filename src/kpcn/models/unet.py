@@ -195,10 +195,10 @@ register_weights("unet_kpcn", "wide64s", "unet_wide64s.safetensors",
                              "group keeps its first channels) and trained 9000 steps (batch 4) on the CPU on 87 + 24 "
                              "scenes; 0.9-1.0x OIDN's 1080p time, 0.89x wide64a's")
 register_weights("unet_kpcn", "wide64b", "unet_wide64b.safetensors", default=True,
-                 description="unet_kpcn:wide64s (the same network, 98 k multiply-adds per pixel) trained 4000 more steps "
-                             "of batch 16 on the CPU (configs/unet_wide64b.yaml) on the 87 + 24 scenes at every spp "
-                             "and 229 fresh CPU scenes at 2-16 spp only (data.spp_by_root), each spp's pairs listed "
-                             "equally often (data.balance_spp); ahead of OIDN on 17 of the 21 report figures at "
+                 description="unet_kpcn:wide64s (the same network, 98 k multiply-adds per pixel) trained 4000 more "
+                             "steps of batch 16 on the CPU (configs/unet_wide64b.yaml) on the 87 + 24 scenes at every "
+                             "spp and 229 fresh CPU scenes at 2-16 spp only (data.spp_by_root), each spp's pairs "
+                             "listed equally often (data.balance_spp); ahead of OIDN on 17 of the 21 report figures at "
                              "4-256 spp (wide64s 16)")
 register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                  description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
