@@ -15,9 +15,9 @@
 #   BUDGET=520 RENDER_S=170 bash scripts/gpu_train.sh        (device run, carry: [".gpu"])
 # The tree that travels (tracked files, .gpu) must stay under 64 MiB: with 47 MB of shipped weights it did not
 # (eighteenth session), so the weights the run does not start from were moved out of the tree for the call; with
-# unet_wide64a (nineteenth session) they are 70 MB, with unet_wide64s (twentieth) 79 MB, with
-# unet_wide64b (twenty-second) 88 MB: move every weights file but
-# INIT's aside for the call, `bash scripts/gpu_weights.sh hold` (and `restore` after it).
+# unet_wide64a (nineteenth session) they are 70 MB, with unet_wide64s (twentieth) 79 MB, with unet_wide64b
+# (twenty-second) 88 MB: move every weights file but INIT's aside for the call, `bash scripts/gpu_weights.sh hold`
+# (and `restore` after it).
 # Locally, as a dry run: PY=.venv/bin/python NO_SITE=1 KPCN_MITSUBA_VARIANT=llvm_ad_rgb RES=48 SPP="2 4" REF=16
 #   PROCS=2 RENDER_S=30 BUDGET=300 BATCH=2 PATCH=32 W=/tmp/gt bash scripts/gpu_train.sh
 set -u

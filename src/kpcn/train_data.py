@@ -141,7 +141,7 @@ def root_spp(data, root) -> list[int] | None:
     best, spp = -1, data.spp
     for folder, counts in data.spp_by_root.items():
         f = Path(folder).resolve()
-        if (path == f or f in path.parents) and len(f.parts) > best:
+        if path.is_relative_to(f) and len(f.parts) > best:
             best, spp = len(f.parts), counts
     return spp
 
