@@ -480,6 +480,51 @@ def test_band_gain_scales_the_high_band_of_each_blended_level():
         create_model("unet_kpcn", band_gain=True)
 
 
+def test_pool2_radiance_is_the_log_of_the_mean_radiance():
+    """``pool2_radiance`` of a log1p-encoded colour is ``log1p`` of the 2x2 mean radiance (float64), twice the 4x4
+    mean's; above the mean of the logarithms wherever a block varies, equal to it on a constant; gradcheck."""
+    from kpcn.models.layers import pool2, pool2_radiance
+
+    g = torch.Generator().manual_seed(5)
+    x = torch.log1p(torch.rand(2, 3, 8, 12, generator=g, dtype=torch.float64) * 20)
+    torch.testing.assert_close(pool2_radiance(x), torch.log1p(F.avg_pool2d(torch.expm1(x), 2)), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(pool2_radiance(pool2_radiance(x)), torch.log1p(F.avg_pool2d(torch.expm1(x), 4)),
+                               rtol=1e-12, atol=1e-12)
+    assert (pool2_radiance(x) > pool2(x) + 1e-6).all()  # every random block varies: Jensen's gap
+    const = torch.full((1, 3, 4, 4), 2.5, dtype=torch.float64)
+    torch.testing.assert_close(pool2_radiance(const), const[..., :2, :2], rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(pool2_radiance, [x[:1, :1, :4, :4].clone().requires_grad_(True)])
+
+
+def test_radiance_pool_brightens_only_the_specular_coarse_levels(render):
+    """``radiance_pool`` on a real 4-spp render of a glossy scene, the same weights with and without it: the diffuse
+    branch is the same, the specular output is at least as bright at every pixel (its coarse levels filter brighter
+    pooled colours with the same kernels, and the blend weights are non-negative) and brighter somewhere, in the
+    whole-frame call and in row bands alike; a spec without a log-encoded branch is refused."""
+    from kpcn import inference
+    from kpcn.features import frame_to_tensors
+
+    frame = render("test:glossy", spp=4, seed=1, resolution=(48, 48))
+    kw = dict(widths=[8, 8, 12], stem="half", kernel_scales=3, band_gain=True, out_init_gain=5.0)
+    torch.manual_seed(0)
+    rad = create_model("unet_kpcn", radiance_pool=True, **kw).eval()
+    log = create_model("unet_kpcn", **kw).eval()
+    log.load_state_dict(rad.state_dict())
+    assert rad.specular.cfg.radiance_pool and not rad.diffuse.cfg.radiance_pool
+    spec = rad.input_spec
+    inputs = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    with torch.no_grad():
+        a, b = rad.run_branches(inputs)[0], log.run_branches(inputs)[0]
+    assert torch.equal(a["diffuse"], b["diffuse"])
+    assert (a["specular"] >= b["specular"] - 1e-6).all() and (a["specular"] - b["specular"]).max() > 1e-3
+    rows = [inference.denoise(frame, m, tile=0, device="cpu", skip=False, precision="float32") for m in (rad, log)]
+    assert (rows[0] >= rows[1] - 1e-5).all() and (rows[0] - rows[1]).max() > 1e-3
+    with pytest.raises(ValueError, match="radiance_pool needs"):
+        create_model("unet_kpcn", input_spec="color_albedo_normal", kernel_scales=2, radiance_pool=True)
+    with pytest.raises(ValueError, match="radiance_pool needs"):
+        create_model("unet_kpcn", radiance_pool=True)
+
+
 def test_albedo_clamp_keeps_the_albedo_within_its_noise(render):
     """``albedo_clamp: c`` on a real 4-spp render of a textured scene, the gates open (a sharp random init): every pixel's
     remodulation albedo lies within ``c`` standard deviations of its noisy mean, so a pixel whose albedo has no noise

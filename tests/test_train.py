@@ -471,6 +471,42 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     assert (c - d).abs().max() > 1e-3
 
 
+def test_init_reopen_restarts_a_blending_weight(tiny_dataset, tmp_path, render):
+    """``train.init_reopen: ["specular:1"]``: on a real render, the specular branch's level-1 blending weight is
+    sigmoid(-1) at every pixel after init (the file's varies), and everything else is the file's: the diffuse
+    branch's output, the specular kernels and level-0 weight; the gate has a gradient; bad entries are refused."""
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", dict(band_gain=True)), progress=False)
+    src = str(tmp_path / "a" / "model.safetensors")
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(band_gain=True), init=src, init_reopen=["specular:1"],
+                         lr=1e-12, stage1_steps=1), progress=False)
+    old, new = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    spec = new.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    with torch.no_grad():
+        ko, kn = old.specular.kernels(x["specular"]), new.specular.kernels(x["specular"])
+        torch.testing.assert_close(new.diffuse(x["diffuse"]), old.diffuse(x["diffuse"]), rtol=1e-5, atol=1e-6)
+    expect = torch.sigmoid(torch.tensor(-1.0))
+    torch.testing.assert_close(kn.alphas[1], torch.full_like(kn.alphas[1], float(expect)), rtol=0, atol=1e-6)
+    assert float(ko.alphas[1].std()) > 1e-4  # the file's weight varies over the frame
+    torch.testing.assert_close(kn.alphas[0], ko.alphas[0], rtol=1e-5, atol=1e-6)
+    for a, b in zip(kn.kernels, ko.kernels):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    head = new.specular.heads[0]
+    head.weight.requires_grad_(True)
+    new.specular(x["specular"]).square().mean().backward()
+    assert head.weight.grad[3 * 3].abs().max() > 0  # the reopened gate's row learns
+    for bad, match in ((["specular:2"], "blends in no coarser level"), (["glossy:1"], "no U-Net branch"),
+                       (["specular-1"], "entries are")):
+        with pytest.raises(ConfigError, match=match):
+            train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(band_gain=True), init=src, init_reopen=bad),
+                  progress=False)
+
+
 def test_init_extend_adds_unet_albedo_kernels(tiny_dataset, tmp_path, render):
     """``albedo_kernel`` added to a trained U-Net with ``train.init_extend``: the diffuse head's new rows start with
     the gate at 0 exactly, so the model denoises a real render as the file does and remodulates with the input's

@@ -96,6 +96,8 @@ class InputSpec:
         colour_variance: ``colour_variance(inputs) -> (B, 1, H, W)``: the variance of the pixel mean of
             the colour (mean over RGB) as the built inputs carry it, or None where they carry no
             variance (training's ``data.converged_max_noise`` needs it).
+        log_branches: the branches whose colour (channels 0..2) is ``log1p`` of the radiance (the split
+            specs' specular): a model can pool them as radiance, ``log1p(mean(expm1(c)))``.
     """
 
     name: str
@@ -118,6 +120,7 @@ class InputSpec:
     frame_stat: Callable | None = field(default=None, repr=False)
     revision: int = 0
     colour_variance: Callable[[Tensors], torch.Tensor] | None = field(default=None, repr=False)
+    log_branches: tuple[str, ...] = ()
 
     def select(self, frame):
         """The :class:`~kpcn.io.Frame` this spec reads from ``frame``: its layers with :attr:`prefer` applied."""
@@ -236,7 +239,7 @@ def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
         grad_x=(4, 14) if variances else (3, 13), grad_y=(14, 24) if variances else (13, 23),
         variance_channels=(*range(COLOR_VAR.start, COLOR_VAR.stop), *range(FEATURE_VAR.start, FEATURE_VAR.stop))
         if variances else (),
-        colour_variance=_split_colour_variance if variances else None,
+        colour_variance=_split_colour_variance if variances else None, log_branches=("specular",),
     )
 
 

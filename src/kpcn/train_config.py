@@ -159,6 +159,12 @@ class TrainConfig:
     #: widths): each group keeps the file's first channels. Unlike extending, the narrowed model does not compute
     #: the file's function: it is a start for training, not a conversion
     init_prune: bool = False
+    #: U-Net blending weights to restart, each ``"<branch>:<level>"``: the weight ``α`` with which kernel level
+    #: ``level`` (0: full resolution) takes in the next coarser one restarts at ``sigmoid(-1) ≈ 0.27`` at every
+    #: pixel (its logit's weights zeroed, its bias -1), the rest of the ``init`` file as it was. A gate whose logits
+    #: sank far below 0 has no gradient left to come back with (the specular branch's level 1 in every shipped
+    #: U-Net: logits -25 to -60, so its 1/4 and 1/8 levels were never used)
+    init_reopen: list[str] = field(default_factory=list)
     #: dtype of the model's hidden layers (``DenoiserModel.set_compute_dtype``): float32, or bfloat16 (autocast
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
@@ -190,6 +196,11 @@ class TrainConfig:
             raise ConfigError(f"train.warmup: must be in [0, 1), got {self.warmup!r}")
         if not (math.isfinite(self.grad_clip) and self.grad_clip >= 0):
             raise ConfigError(f"train.grad_clip: must be >= 0 (0: off), got {self.grad_clip!r}")
+        if self.init_reopen and not self.init:
+            raise ConfigError("train.init_reopen: needs train.init (it restarts blending weights of the init file)")
+        for entry in self.init_reopen:
+            if not (isinstance(entry, str) and re.fullmatch(r"[A-Za-z_]\w*:\d+", entry)):
+                raise ConfigError(f"train.init_reopen: entries are '<branch>:<level>' (e.g. 'specular:1'), got {entry!r}")
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:

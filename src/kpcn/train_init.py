@@ -33,7 +33,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
-                  "albedo_clamp", "specular_widths"}
+                  "albedo_clamp", "specular_widths", "radiance_pool"}
     free = {"name"} | (extendable if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
@@ -54,7 +54,33 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
         state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
                         source_groups, prune=cfg.train.init_prune)
     model.load_state_dict(state)
+    _reopen_blends(model, cfg.train.init_reopen)
     return str(path)
+
+
+#: the logit a reopened blending weight restarts at: α = sigmoid(-1) ≈ 0.27
+REOPEN_LOGIT = -1.0
+
+
+def _reopen_blends(model: torch.nn.Module, entries) -> None:
+    """``train.init_reopen``: each ``"<branch>:<level>"``'s blending weight α restarts at ``sigmoid(REOPEN_LOGIT)``
+    (the α channel of that level's head: weights zeroed, bias set)."""
+    for entry in entries:
+        branch, level = entry.split(":")
+        level = int(level)
+        net = getattr(model, branch, None) if branch in getattr(model, "branches", ()) else None
+        n = getattr(getattr(net, "cfg", None), "kernel_scales", 1)
+        if net is None or not hasattr(net, "heads"):
+            raise ConfigError(f"train.init_reopen: {entry!r}: the model has no U-Net branch {branch!r} "
+                              f"(branches: {list(getattr(model, 'branches', ()))})")
+        if not 0 <= level < n - 1:
+            raise ConfigError(f"train.init_reopen: {entry!r}: kernel level {level} of the {branch} branch blends in "
+                              f"no coarser level (with kernel_scales {n}, levels 0..{n - 2} do)")
+        head = net.head if level == 0 else net.heads[level - 1]
+        kk = net.cfg.kernel_size ** 2
+        with torch.no_grad():
+            head.weight[kk].zero_()
+            head.bias[kk] = REOPEN_LOGIT
 
 
 def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None,

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..ops.kernel_apply import KernelApply
-from .layers import conv1x1, pool2, upsample2
+from .layers import conv1x1, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
            "gated_albedo", "albedo_bound"]
@@ -104,12 +104,15 @@ class MultiScaleKernels:
 
 
 class MultiScaleApply(nn.Module):
-    """Apply :class:`MultiScaleKernels` to a colour ``(B, 3, H, W)``: filter each level, combine coarse to fine."""
+    """Apply :class:`MultiScaleKernels` to a colour ``(B, 3, H, W)``: filter each level, combine coarse to fine.
+    ``radiance``: the colour is ``log1p`` of a radiance, pooled to the coarser levels as radiance
+    (:func:`~kpcn.models.layers.pool2_radiance`; ``UNetConfig.radiance_pool``)."""
 
-    def __init__(self, kernel_size: int, alignment: int) -> None:
+    def __init__(self, kernel_size: int, alignment: int, radiance: bool = False) -> None:
         super().__init__()
         self.kernel_size, self.alignment = kernel_size, alignment
         self.apply_one = KernelApply(kernel_size, "replicate")
+        self.pool = pool2_radiance if radiance else pool2
 
     def forward(self, colour: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
         h, w = ks.size
@@ -119,7 +122,7 @@ class MultiScaleApply(nn.Module):
         level_colour = colour
         for level, k in enumerate(ks.kernels):
             if level:
-                level_colour = pool2(level_colour)
+                level_colour = self.pool(level_colour)
             filtered.append(self.apply_one(level_colour.contiguous(), k))
         return combine_levels(filtered, ks.alphas, ks.gains)[..., :h, :w]
 

@@ -85,7 +85,8 @@ class UNetBranch(nn.Module):
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0))
                                    for lv in range(1, n))
-        self.apply_kernels = KernelApply(k, "replicate") if n == 1 else MultiScaleApply(k, cfg.alignment)
+        self.apply_kernels = KernelApply(k, "replicate") if n == 1 else \
+            MultiScaleApply(k, cfg.alignment, radiance=cfg.radiance_pool)
         #: the conv stack's dtype (None: float32); see :meth:`UNetKPCN.set_compute_dtype`
         self.compute_dtype: torch.dtype | None = None
 

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo
-from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
+from .layers import conv1x1, conv1x1_lowp, pool2, pool2_radiance, transform_input, upsample2
 from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -90,6 +90,7 @@ class RowStream:
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, device=device, dtype=branch.compute_dtype or dtype)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
+        self._pool = pool2_radiance if cfg.radiance_pool else pool2  # the colours' pooling to the coarser levels
         self._fed = 0
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
@@ -127,7 +128,7 @@ class RowStream:
         self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
-            self._half[k][..., r0 // 2:(r0 + n) // 2, :] = pool2(v)
+            self._half[k][..., r0 // 2:(r0 + n) // 2, :] = self._pool(v)
         self._fed = r0 + n
 
     def _feed_guide(self, r0: int, t: torch.Tensor) -> None:
@@ -185,7 +186,7 @@ class RowStream:
                 filtered = []
                 for level, w in enumerate(weights):
                     if level:
-                        colour = pool2(colour)
+                        colour = self._pool(colour)
                     padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
                     filtered.append(_apply(padded, w, cfg.kernel_size))
                 self._coarse[key] = combine_levels(filtered, alphas, gains)  # gains: None each without band_gain
