@@ -2,7 +2,7 @@
 # One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
 # scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
 # U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
-# configs/unet_wide64b.yaml, the shipped default's; INIT: the weights it starts from, default unet_kpcn:wide64b; LR:
+# configs/unet_wide64c.yaml, the shipped default's; INIT: the weights it starts from, default unet_kpcn:wide64c; LR:
 # the peak rate).
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
@@ -16,7 +16,8 @@
 # The tree that travels (tracked files, .gpu) must stay under 64 MiB: with 47 MB of shipped weights it did not
 # (eighteenth session), so the weights the run does not start from were moved out of the tree for the call; with
 # unet_wide64a (nineteenth session) they are 70 MB, with unet_wide64s (twentieth) 79 MB, with unet_wide64b
-# (twenty-second) 88 MB: move every weights file but INIT's aside for the call, `bash scripts/gpu_weights.sh hold`
+# (twenty-second) 88 MB, with unet_wide64c (twenty-third) 97 MB: move every weights file but INIT's aside for the
+# call, `bash scripts/gpu_weights.sh hold`
 # (and `restore` after it).
 # Locally, as a dry run: PY=.venv/bin/python NO_SITE=1 KPCN_MITSUBA_VARIANT=llvm_ad_rgb RES=48 SPP="2 4" REF=16
 #   PROCS=2 RENDER_S=30 BUDGET=300 BATCH=2 PATCH=32 W=/tmp/gt bash scripts/gpu_train.sh
@@ -64,12 +65,12 @@ from kpcn.render import dataset_status
 w = Path(sys.argv[1])
 roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
 print(len(roots), "complete scenes", flush=True)
-base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64b.yaml")))
+base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64c.yaml")))
 d = base["data"]
 d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)),
          spp_by_root={}, balance_spp=False)  # every fresh scene at every spp
-base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64b"), init_extend=True,
+base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64c"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
 yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)

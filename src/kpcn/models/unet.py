@@ -194,12 +194,18 @@ register_weights("unet_kpcn", "wide64s", "unet_wide64s.safetensors",
                              "has it (configs/unet_wide64s.yaml): pruned from wide64a (train.init_prune: each channel "
                              "group keeps its first channels) and trained 9000 steps (batch 4) on the CPU on 87 + 24 "
                              "scenes; 0.9-1.0x OIDN's 1080p time, 0.89x wide64a's")
-register_weights("unet_kpcn", "wide64b", "unet_wide64b.safetensors", default=True,
+register_weights("unet_kpcn", "wide64b", "unet_wide64b.safetensors",
                  description="unet_kpcn:wide64s (the same network, 98 k multiply-adds per pixel) trained 4000 more "
                              "steps of batch 16 on the CPU (configs/unet_wide64b.yaml) on the 87 + 24 scenes at every "
                              "spp and 229 fresh CPU scenes at 2-16 spp only (data.spp_by_root), each spp's pairs "
                              "listed equally often (data.balance_spp); ahead of OIDN on 17 of the 21 report figures at "
                              "4-256 spp (wide64s 16)")
+register_weights("unet_kpcn", "wide64c", "unet_wide64c.safetensors", default=True,
+                 description="unet_kpcn:wide64b (the same network, 98 k multiply-adds per pixel) with its specular "
+                             "branch's level-1 blending weight reopened (train.init_reopen: dead since unet_kpcn:fast, "
+                             "so the specular 1/4 and 1/8 kernel levels were never used) and its colour pooled to the "
+                             "coarse levels as radiance (radiance_pool), trained 3000 steps of batch 16 on the CPU "
+                             "(configs/unet_wide64c.yaml) with 268 fresh scenes at 2-8 spp")
 register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                  description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
                              "level through a 1x1 at its own resolution), 126 k multiply-adds per pixel, its convolutions "

@@ -14,7 +14,7 @@ A diagnosis, not a figure of merit: replacing a part by the reference's is an or
 
 Example::
 
-    python -m kpcn.report.diagnose --renders results/rep/s16/renders --model unet_kpcn:wide64b --spp 4 8
+    python -m kpcn.report.diagnose --renders results/rep/s16/renders --model unet_kpcn:wide64c --spp 4 8
 """
 from __future__ import annotations
 
