@@ -525,6 +525,28 @@ def test_radiance_pool_brightens_only_the_specular_coarse_levels(render):
         create_model("unet_kpcn", radiance_pool=True)
 
 
+def test_the_default_uses_every_kernel_level(render):
+    """The shipped default's blending weights on a real 4-spp glossy render: every kernel level that blends in a
+    coarser one does so somewhere (max α > 1e-3), in both branches. The check can fail: in ``unet_kpcn:wide64b``
+    (and every default before it) the specular branch's level-1 weight is below 1e-6 at every pixel (logits -25 to
+    -60), so its 1/4 and 1/8 kernel levels were never used."""
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    frame = render("test:glossy", spp=4, seed=1, resolution=(48, 48))
+
+    def alphas(model):
+        spec = model.input_spec
+        x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+        with torch.no_grad():
+            return {b: [a for a in getattr(model, b).kernels(x[b]).alphas if a is not None] for b in model.branches}
+
+    for branch, levels in alphas(load_model(None, device="cpu")).items():
+        assert levels and all(float(a.max()) > 1e-3 for a in levels), \
+            f"{branch}: max blending weight per level {[float(a.max()) for a in levels]}"
+    assert float(alphas(load_model("unet_kpcn:wide64b", device="cpu"))["specular"][1].max()) < 1e-6
+
+
 def test_albedo_clamp_keeps_the_albedo_within_its_noise(render):
     """``albedo_clamp: c`` on a real 4-spp render of a textured scene, the gates open (a sharp random init): every pixel's
     remodulation albedo lies within ``c`` standard deviations of its noisy mean, so a pixel whose albedo has no noise
