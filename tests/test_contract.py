@@ -48,7 +48,8 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "up_kernel": 1},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3},
-                                 {"stem": "half", "kernel_scales": 3, "up_kernel": 1, "specular_widths": [8, 12, 16, 24]},
+                                 {"stem": "half", "kernel_scales": 3, "up_kernel": 1,
+                                  "specular_widths": [8, 12, 16, 24]},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True}]}
 
 

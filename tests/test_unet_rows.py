@@ -56,7 +56,8 @@ def _rel(a, b) -> float:
                                 {"albedo_kernel": 3, "band_gain": True}, {"albedo_kernel": 5, "kernel_scales": 2, "albedo_gate_gain": 4.0},
                                 {"albedo_kernel": 3, "albedo_clamp": 2.0, "albedo_gate_gain": 8.0},
                                 {"albedo_kernel": 3, "up_kernel": 1, "specular_widths": [4, 6, 8, 10]},
-                                {"radiance_pool": True, "band_gain": True}, {"radiance_pool": True, "input_spec": "split_novar"},
+                                {"radiance_pool": True, "band_gain": True},
+                                {"radiance_pool": True, "input_spec": "split_novar"},
                                 {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
                                 {"input_spec": "color_albedo_normal_noise"}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")

@@ -200,7 +200,8 @@ class TrainConfig:
             raise ConfigError("train.init_reopen: needs train.init (it restarts blending weights of the init file)")
         for entry in self.init_reopen:
             if not (isinstance(entry, str) and re.fullmatch(r"[A-Za-z_]\w*:\d+", entry)):
-                raise ConfigError(f"train.init_reopen: entries are '<branch>:<level>' (e.g. 'specular:1'), got {entry!r}")
+                raise ConfigError(f"train.init_reopen: entries are '<branch>:<level>' (e.g. 'specular:1'), "
+                                  f"got {entry!r}")
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:

@@ -69,10 +69,10 @@ def _reopen_blends(model: torch.nn.Module, entries) -> None:
         branch, level = entry.split(":")
         level = int(level)
         net = getattr(model, branch, None) if branch in getattr(model, "branches", ()) else None
-        n = getattr(getattr(net, "cfg", None), "kernel_scales", 1)
         if net is None or not hasattr(net, "heads"):
             raise ConfigError(f"train.init_reopen: {entry!r}: the model has no U-Net branch {branch!r} "
                               f"(branches: {list(getattr(model, 'branches', ()))})")
+        n = net.cfg.kernel_scales
         if not 0 <= level < n - 1:
             raise ConfigError(f"train.init_reopen: {entry!r}: kernel level {level} of the {branch} branch blends in "
                               f"no coarser level (with kernel_scales {n}, levels 0..{n - 2} do)")

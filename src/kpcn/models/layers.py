@@ -22,7 +22,8 @@ from torch import nn
 from ..inputs import SPECULAR_LOG_MAX, get_input_spec
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1", "conv1x1_lowp", "Conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1", "conv1x1_lowp",
+           "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "UpAddConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")

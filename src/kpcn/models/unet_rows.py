@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
 from .kernel_heads import _softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo
-from .layers import conv1x1, conv1x1_lowp, pool2, pool2_radiance, transform_input, upsample2
+from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
 from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -90,7 +90,8 @@ class RowStream:
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, device=device, dtype=branch.compute_dtype or dtype)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
         self._half: dict[str, torch.Tensor] = {}  # ... and pooled to half (the coarser kernel levels)
-        self._pool = pool2_radiance if cfg.radiance_pool else pool2  # the colours' pooling to the coarser levels
+        # the colours' pooling to the coarser kernel levels: the whole-frame path's own (UNetConfig.radiance_pool)
+        self._pool = getattr(branch.apply_kernels, "pool", pool2)
         self._fed = 0
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
