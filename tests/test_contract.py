@@ -50,7 +50,9 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3},
                                  {"stem": "half", "kernel_scales": 3, "up_kernel": 1,
                                   "specular_widths": [8, 12, 16, 24]},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True}]}
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True,
+                                  "radiance_mix": True, "albedo_kernel": 3}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)

@@ -525,6 +525,80 @@ def test_radiance_pool_brightens_only_the_specular_coarse_levels(render):
         create_model("unet_kpcn", radiance_pool=True)
 
 
+def test_radiance_mixed_lies_between_the_log_and_the_radiance_filter():
+    """``radiance_mixed`` (float64): at γ = 0 the kernel applied to the logarithms, at γ = 1 ``log1p`` of the kernel
+    applied to the radiance; in between, at least the first (Jensen's gap, softmax kernels) and at most the second at
+    every pixel, strictly above where the taps differ; a constant and a zero stay as they are; gradcheck in both the
+    colour and γ."""
+    from kpcn.models.kernel_heads import radiance_mixed
+    from kpcn.ops.kernel_apply import kernel_apply
+
+    def apply(x, w):
+        return kernel_apply(x, w, 3, "replicate")
+
+    g = torch.Generator().manual_seed(7)
+    c = torch.log1p(torch.rand(2, 3, 6, 7, generator=g, dtype=torch.float64) * 30)
+    w = torch.softmax(torch.randn(2, 9, 6, 7, generator=g, dtype=torch.float64), dim=1)
+    low, high = apply(c, w), torch.log1p(apply(torch.expm1(c), w))
+    torch.testing.assert_close(radiance_mixed(apply, c, w, torch.zeros(2, 1, 6, 7, dtype=torch.float64)), low)
+    torch.testing.assert_close(radiance_mixed(apply, c, w, torch.ones(2, 1, 6, 7, dtype=torch.float64)), high)
+    gamma = torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) * 0.9 + 0.05
+    mixed = radiance_mixed(apply, c, w, gamma)
+    assert (mixed > low + 1e-9).all() and (mixed < high - 1e-9).all()
+    for value in (0.0, 2.5):
+        const = torch.full((1, 3, 6, 7), value, dtype=torch.float64)
+        out = radiance_mixed(apply, const, w[:1], gamma[:1])
+        torch.testing.assert_close(out, const, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda x, t: radiance_mixed(apply, x, w[:1, :, :4, :4], t),
+                                    [c[:1, :, :4, :4].clone().requires_grad_(True),
+                                     gamma[:1, :, :4, :4].clone().requires_grad_(True)])
+
+
+def test_radiance_mix_moves_only_the_specular_between_its_filters(render):
+    """``radiance_mix`` on a real 4-spp glossy render, the same kernels with the mixing logits' weights zeroed: with
+    every γ = 0 the model is the one without the option (diffuse and specular), with every γ = 1 the diffuse is the
+    same and the specular output brighter on average, whole frame and row bands alike (the row path agrees with the
+    whole-frame one); an input spec without a log-encoded branch is refused."""
+    from kpcn import inference
+    from kpcn.features import frame_to_tensors
+
+    frame = render("test:glossy", spp=4, seed=1, resolution=(48, 48))
+    kw = dict(widths=[8, 8, 12], stem="half", kernel_scales=3, band_gain=True, radiance_pool=True, out_init_gain=5.0)
+    torch.manual_seed(0)
+    base = create_model("unet_kpcn", **kw).eval()
+    mix = create_model("unet_kpcn", radiance_mix=True, **kw).eval()
+    assert mix.specular.mix and not mix.diffuse.mix
+    state = mix.state_dict()
+    for k, v in base.state_dict().items():  # the file's rows first, the mixing logits' rows zeroed
+        state[k] = v if v.shape == state[k].shape else torch.cat([v, torch.zeros_like(state[k][v.shape[0]:])])
+    spec = mix.input_spec
+    inputs = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+
+    def outputs(bias):
+        for name in ["head"] + [f"heads.{i}" for i in range(2)]:
+            state[f"specular.{name}.bias"][-1] = bias
+        mix.load_state_dict(state)
+        with torch.no_grad():
+            return mix.run_branches(inputs)[0], inference.denoise(frame, mix, tile=0, device="cpu", skip=False,
+                                                                  precision="float32")
+
+    with torch.no_grad():
+        ref = base.run_branches(inputs)[0]
+    ref_rows = inference.denoise(frame, base, tile=0, device="cpu", skip=False, precision="float32")
+    shut, shut_rows = outputs(-60.0)
+    for b in ("diffuse", "specular"):
+        torch.testing.assert_close(shut[b], ref[b], rtol=1e-5, atol=1e-6)
+    assert abs(shut_rows - ref_rows).max() < 1e-4
+    wide, wide_rows = outputs(60.0)
+    assert torch.equal(wide["diffuse"], ref["diffuse"])
+    assert float(torch.expm1(wide["specular"]).mean()) > float(torch.expm1(ref["specular"]).mean()) * 1.01
+    assert wide_rows.mean() > ref_rows.mean() + 1e-4
+    whole = inference.denoise(frame, mix, tile=0, device="cpu", skip=False, precision="float32", rows=False)
+    assert abs(whole - wide_rows).max() < 1e-4 * max(float(whole.max()), 1.0)
+    with pytest.raises(ValueError, match="radiance_mix needs"):
+        create_model("unet_kpcn", input_spec="color_albedo_normal", kernel_scales=2, radiance_mix=True)
+
+
 def test_the_default_uses_every_kernel_level(render):
     """The shipped default's blending weights on a real 4-spp glossy render: every kernel level that blends in a
     coarser one does so somewhere (max α > 1e-3), in both branches. The check can fail: in ``unet_kpcn:wide64b``

@@ -507,6 +507,47 @@ def test_init_reopen_restarts_a_blending_weight(tiny_dataset, tmp_path, render):
                   progress=False)
 
 
+def test_train_only_trains_the_radiance_mix_heads_alone(tiny_dataset, tmp_path, render):
+    """``radiance_mix`` added with ``train.init_extend`` and trained with ``train.train_only`` on the specular heads:
+    every other parameter is the file's bit for bit, the heads moved (the mixing rows from their zero start), each
+    mixing weight starts at sigmoid(RADIANCE_MIX_INIT) on a real render; a pattern naming no parameter is refused."""
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+    from kpcn.models.unet_config import RADIANCE_MIX_INIT
+
+    kw = dict(band_gain=True, radiance_pool=True)
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", kw), progress=False)
+    src = str(tmp_path / "a" / "model.safetensors")
+    heads = ["specular.head.*", "specular.heads.*"]
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(kw, radiance_mix=True), init=src, init_extend=True,
+                         lr=1e-12, stage1_steps=1), progress=False)
+    start = load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    spec = start.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    with torch.no_grad():
+        ks = start.specular.kernels(x["specular"])
+    for m in ks.mixes:
+        torch.testing.assert_close(m, torch.full_like(m, float(torch.sigmoid(torch.tensor(RADIANCE_MIX_INIT)))),
+                                   rtol=0, atol=1e-6)
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kw, radiance_mix=True), init=src, init_extend=True,
+                         lr=1e-2, stage1_steps=3, train_only=heads), progress=False)
+    old = load_model(src, device="cpu").state_dict()
+    new = load_model(str(tmp_path / "c" / "model.safetensors"), device="cpu").state_dict()
+    moved = []
+    for k, v in new.items():
+        if k.startswith(("specular.head.", "specular.heads.")):
+            moved.append(not torch.equal(v[: old[k].shape[0]], old[k]))
+            if k.endswith("weight"):
+                assert v[-1].abs().max() > 0, f"{k}: the mixing row did not learn"
+        else:
+            assert torch.equal(v, old[k]), f"{k} was trained though train_only leaves it out"
+    assert moved and all(moved)
+    with pytest.raises(ConfigError, match="name no parameter"):
+        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "d", kw, train_only=["specular.nothing*"]), progress=False)
+
+
 def test_init_extend_adds_unet_albedo_kernels(tiny_dataset, tmp_path, render):
     """``albedo_kernel`` added to a trained U-Net with ``train.init_extend``: the diffuse head's new rows start with
     the gate at 0 exactly, so the model denoises a real render as the file does and remodulates with the input's

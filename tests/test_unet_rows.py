@@ -58,6 +58,8 @@ def _rel(a, b) -> float:
                                 {"albedo_kernel": 3, "up_kernel": 1, "specular_widths": [4, 6, 8, 10]},
                                 {"radiance_pool": True, "band_gain": True},
                                 {"radiance_pool": True, "input_spec": "split_novar"},
+                                {"radiance_mix": True, "albedo_kernel": 3, "band_gain": True},
+                                {"radiance_mix": True, "radiance_pool": True, "kernel_scales": 4},
                                 {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
                                 {"input_spec": "color_albedo_normal_noise"}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")

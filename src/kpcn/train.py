@@ -90,7 +90,7 @@ from .runs import (
 )
 from .train_config import RunConfig
 from .train_data import split_pairs, store_dir
-from .train_init import load_init
+from .train_init import freeze_except, load_init
 from .train_steps import (
     _make_optimizer,
     _set_seed,
@@ -148,6 +148,9 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         return state, source, load_init(model, cfg) if cfg.train.init and not state else None
 
     state, source, init_source = _agree(check_run)
+    trained = freeze_except(model, cfg.train.train_only)
+    if cfg.train.train_only and d.main:
+        log.info("train.train_only: %d of %d parameters trained", trained, sum(p.numel() for p in model.parameters()))
 
     # 2. the data (rank 0 renders the default data set when it is missing)
     def load_data():

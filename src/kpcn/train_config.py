@@ -165,6 +165,10 @@ class TrainConfig:
     #: sank far below 0 has no gradient left to come back with (the specular branch's level 1 in every shipped
     #: U-Net: logits -25 to -60, so its 1/4 and 1/8 levels were never used)
     init_reopen: list[str] = field(default_factory=list)
+    #: parameter names to train, as glob patterns (``fnmatch``; e.g. ``"specular.head*"``): every other parameter is
+    #: frozen (no gradient, left out of the optimiser, and the frozen part of the network runs without autograd).
+    #: Empty: all of them. A pattern that names no parameter is refused
+    train_only: list[str] = field(default_factory=list)
     #: dtype of the model's hidden layers (``DenoiserModel.set_compute_dtype``): float32, or bfloat16 (autocast
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
@@ -202,6 +206,8 @@ class TrainConfig:
             if not (isinstance(entry, str) and re.fullmatch(r"[A-Za-z_]\w*:\d+", entry)):
                 raise ConfigError(f"train.init_reopen: entries are '<branch>:<level>' (e.g. 'specular:1'), "
                                   f"got {entry!r}")
+        if not all(isinstance(p, str) and p for p in self.train_only):
+            raise ConfigError(f"train.train_only: expected a list of parameter-name patterns, got {self.train_only!r}")
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:

@@ -6,6 +6,7 @@ outputs)."""
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import re
 
 import torch
@@ -33,7 +34,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
-                  "albedo_clamp", "specular_widths", "radiance_pool"}
+                  "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix"}
     free = {"name"} | (extendable if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
@@ -207,3 +208,25 @@ def _widen(k: str, v: torch.Tensor, t: torch.Tensor, src, dst, path, prune: bool
     block[:, cols] = v[keep][:, keep_in]
     w[rows] = block
     return w
+
+
+def freeze_except(model: torch.nn.Module, patterns) -> int:
+    """``train.train_only``: freeze every parameter of ``model`` whose name matches none of the glob ``patterns``
+    (``requires_grad`` False; nothing when ``patterns`` is empty) and return how many parameters stay trainable.
+
+    Raises:
+        ConfigError: a pattern that matches no parameter (listing a few names).
+    """
+    names = [n for n, _ in model.named_parameters()]
+    if not patterns:
+        return sum(p.numel() for p in model.parameters())
+    unused = [pat for pat in patterns if not any(fnmatch.fnmatchcase(n, pat) for n in names)]
+    if unused:
+        raise ConfigError(f"train.train_only: {', '.join(map(repr, unused))} name no parameter of the model (it has "
+                          f"{len(names)}, e.g. {', '.join(names[:3])}, ..., {names[-1]})")
+    kept = 0
+    for n, p in model.named_parameters():
+        p.requires_grad_(any(fnmatch.fnmatchcase(n, pat) for pat in patterns))
+        kept += p.numel() if p.requires_grad else 0
+    return kept
+

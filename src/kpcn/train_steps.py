@@ -136,7 +136,8 @@ def _set_seed(seed: int) -> None:
 
 
 def _make_optimizer(model, lr: float):
-    return torch.optim.Adam(model.parameters(), lr=lr)
+    """Adam over the parameters that are trained (``train.train_only`` freezes the others)."""
+    return torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
 
 
 def _tonemap_t(x: torch.Tensor) -> torch.Tensor:

@@ -15,11 +15,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..inputs import SPECULAR_LOG_MAX
 from ..ops.kernel_apply import KernelApply
 from .layers import conv1x1, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
-           "gated_albedo", "albedo_bound"]
+           "gated_albedo", "albedo_bound", "radiance_mixed"]
 
 _LOG2_E = 1.4426950408889634
 
@@ -87,6 +88,16 @@ def albedo_bound(variance: torch.Tensor, c: float) -> torch.Tensor:
     return variance.clamp_min(0.0).sqrt().mul_(c)
 
 
+def radiance_mixed(apply, colour: torch.Tensor, weights, gamma: torch.Tensor) -> torch.Tensor:
+    """``lerp(K ⊛ c, log1p(K ⊛ expm1(c)), γ)`` (``UNetConfig.radiance_mix``) of a ``log1p``-encoded colour
+    ``(B, C, H, W)`` with a per-pixel weight ``γ`` ``(B, 1, H, W)`` in ``[0, 1]``: ``apply(x, weights)`` is the
+    kernel's application (called once, on the colour and its radiance side by side); ``c`` is clamped to
+    ``[0, SPECULAR_LOG_MAX]`` for the radiance. Both filters keep a constant and a zero, so the mix does."""
+    c = colour.shape[1]
+    both = apply(torch.cat([colour, torch.expm1(colour.clamp(0.0, SPECULAR_LOG_MAX))], dim=1), weights)
+    return torch.lerp(both[:, :c], torch.log1p(both[:, c:].clamp_min(0.0)), gamma.to(both.dtype))
+
+
 @dataclass(frozen=True)
 class MultiScaleKernels:
     """Per-level kernels ``(B, k*k, H/2**l, W/2**l)``, blending weights ``(B, 1, ...)`` (None at the coarsest) and
@@ -101,12 +112,16 @@ class MultiScaleKernels:
     #: and gates ``(B, 1, H, W)`` (and with ``albedo_clamp`` the bounds ``(B, 1, H, W)``, else None), for
     #: :func:`gated_albedo`; None: the albedo as it is
     albedo: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
+    #: ``UNetConfig.radiance_mix``: per-level weights ``γ`` ``(B, 1, ...)`` of the radiance-space filter
+    #: (:func:`radiance_mixed`); None: the kernels applied to the colour as it is
+    mixes: tuple[torch.Tensor, ...] | None = None
 
 
 class MultiScaleApply(nn.Module):
     """Apply :class:`MultiScaleKernels` to a colour ``(B, 3, H, W)``: filter each level, combine coarse to fine.
     ``radiance``: the colour is ``log1p`` of a radiance, pooled to the coarser levels as radiance
-    (:func:`~kpcn.models.layers.pool2_radiance`; ``UNetConfig.radiance_pool``)."""
+    (:func:`~kpcn.models.layers.pool2_radiance`; ``UNetConfig.radiance_pool``). Kernels with ``mixes``
+    (``UNetConfig.radiance_mix``) filter each level with :func:`radiance_mixed`."""
 
     def __init__(self, kernel_size: int, alignment: int, radiance: bool = False) -> None:
         super().__init__()
@@ -123,7 +138,10 @@ class MultiScaleApply(nn.Module):
         for level, k in enumerate(ks.kernels):
             if level:
                 level_colour = self.pool(level_colour)
-            filtered.append(self.apply_one(level_colour.contiguous(), k))
+            if ks.mixes is not None:
+                filtered.append(radiance_mixed(self.apply_one, level_colour.contiguous(), k, ks.mixes[level]))
+            else:
+                filtered.append(self.apply_one(level_colour.contiguous(), k))
         return combine_levels(filtered, ks.alphas, ks.gains)[..., :h, :w]
 
 

@@ -16,7 +16,7 @@ from ..ops.kernel_apply import KernelApply
 from .kernel_heads import (GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax, albedo_bound,
                            blend_weights, gate_of, gated_albedo)
 from .layers import Conv1x1, ReLU, UpAddConv, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
-from .unet_config import UNetConfig
+from .unet_config import RADIANCE_MIX_INIT, UNetConfig
 
 __all__ = ["UNetBranch", "ALBEDO_VARIANCE"]
 
@@ -73,8 +73,11 @@ class UNetBranch(nn.Module):
             self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if gk == 1 else nn.Conv2d(c_in, cfg.guide_channels, gk)
         blend = 2 if cfg.band_gain else 1  # channels after the logits of a level that blends: α (and β)
         ka = self.albedo_kernel
-        #: channels of the full-resolution head: the kernel logits, the blend (α, β), the albedo logits and gate
-        self.head_layout = (k * k, blend if n > 1 else 0, ka * ka + 1 if ka else 0)
+        #: ``radiance_mix``: every level's head ends in one more channel, the logit of its mixing weight γ
+        self.mix = int(cfg.radiance_mix)
+        #: channels of the full-resolution head: the kernel logits, the blend (α, β), the albedo logits and gate,
+        #: the mixing weight's logit
+        self.head_layout = (k * k, blend if n > 1 else 0, ka * ka + 1 if ka else 0, self.mix)
         self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), sum(self.head_layout),
                                     GuidedHead if off else Conv1x1)
         if ka:
@@ -83,7 +86,7 @@ class UNetBranch(nn.Module):
                     kernel_prior_bias(ka, cfg.init_sigma, cfg.logit_scale))
         self.apply_albedo = KernelApply(ka, "replicate") if ka else None
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
-        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0))
+        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0) + self.mix)
                                    for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else \
             MultiScaleApply(k, cfg.alignment, radiance=cfg.radiance_pool)
@@ -132,6 +135,8 @@ class UNetBranch(nn.Module):
             head.weight.mul_(cfg.out_init_gain)
             head.bias.zero_()
             head.bias[: k * k].copy_(kernel_prior_bias(k, cfg.init_sigma, cfg.logit_scale))
+            if self.mix:  # the mixing weight's logit is the last channel
+                head.bias[-1:].fill_(RADIANCE_MIX_INIT)
         return head
 
     def guide_of(self, t: torch.Tensor, pad_rows: bool = True) -> torch.Tensor:
@@ -228,22 +233,24 @@ class UNetBranch(nn.Module):
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
             return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
-        kernels, alphas, gains, albedo = [], [], [], None
+        kernels, alphas, gains, mixes, albedo = [], [], [], [], None
         for level in range(self.cfg.kernel_scales):
             z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
-            nb = self.head_layout[1] if level == 0 else z.shape[1] - kk
+            nb = self.head_layout[1] if level == 0 else z.shape[1] - kk - self.mix
             alpha, gain = blend_weights(z[:, kk:kk + nb])
+            if self.mix:
+                mixes.append(torch.sigmoid(z[:, -1:]))
             alphas.append(alpha)
             gains.append(gain)
             kernels.append(_bounded_softmax(z[:, :kk], s))
             if level == 0 and self.albedo_kernel:
-                za = z[:, kk + nb:].float()
+                za = z[:, kk + nb:kk + nb + self.head_layout[2]].float()
                 bound = albedo_bound(self._pad(x[:, ALBEDO_VARIANCE:ALBEDO_VARIANCE + 1].float()), self.cfg.albedo_clamp) \
                     if self.cfg.albedo_clamp else None
                 albedo = (_bounded_softmax(za[:, :-1], s), gate_of(za[:, -1:], self.cfg.albedo_gate_gain), bound)
             del z
         return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in),
-                                 tuple(gains) if self.cfg.band_gain else None, albedo)
+                                 tuple(gains) if self.cfg.band_gain else None, albedo, tuple(mixes) if self.mix else None)
 
     def filter_albedo(self, albedo: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
         """The albedo ``(B, 3, H, W)`` the colour is remodulated with: ``max(a + g·(K_a ⊛ a - a), 0)`` with the

@@ -8,7 +8,10 @@ from dataclasses import dataclass, field
 from ..inputs import get_input_spec
 from .layers import INPUT_TRANSFORMS
 
-__all__ = ["UNetConfig"]
+__all__ = ["UNetConfig", "RADIANCE_MIX_INIT"]
+
+#: ``UNetConfig.radiance_mix``: the bias each mixing weight's logit starts from (``γ = sigmoid(-3) ≈ 0.05``)
+RADIANCE_MIX_INIT = -3.0
 
 
 @dataclass
@@ -71,6 +74,13 @@ class UNetConfig:
             (the default's 4-spp specular output 4-19 % darker than the reference on the report's glossy scenes).
             The other branches pool as before. A function change, not a weights one: ``train.init_extend`` allows
             a file trained without it.
+        radiance_mix: ``kernel_scales > 1``: every kernel level of a ``log1p``-encoded branch also predicts a
+            per-pixel weight ``γ = sigmoid(z)`` and filters ``lerp(K ⊛ c, log1p(K ⊛ expm1(c)), γ)``: between the
+            kernel applied to the logarithms (robust beside a firefly, but below the mean radiance by Jensen's
+            inequality wherever the pixels it averages differ: at low spp a glossy surface comes out darker) and
+            the kernel applied to the radiance (unbiased). Each ``γ`` starts near 0 (bias
+            :data:`RADIANCE_MIX_INIT`), so ``train.init_extend`` from a file without it starts close to its output.
+            A constant stays constant and a zero branch zero (both filters keep them).
     """
 
     input_spec: str = "kpcn_split"
@@ -93,6 +103,7 @@ class UNetConfig:
     albedo_clamp: float = 0.0
     specular_widths: list[int] | None = None
     radiance_pool: bool = False
+    radiance_mix: bool = False
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -143,6 +154,10 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.radiance_pool needs kernel_scales >= 2 and an input spec with a "
                              f"log1p-encoded branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
                              f"(log_branches {spec.log_branches})")
+        if self.radiance_mix and (self.kernel_scales < 2 or not spec.log_branches):
+            raise ValueError(f"UNetConfig.radiance_mix needs kernel_scales >= 2 and an input spec with a "
+                             f"log1p-encoded branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
+                             f"(log_branches {spec.log_branches})")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
@@ -153,11 +168,11 @@ class UNetConfig:
             raise ValueError("UNetConfig.input_transform 'logvar' needs the kpcn_split input spec")
 
     def branch_config(self, branch: str) -> "UNetConfig":
-        """The architecture of branch ``branch`` (``specular_widths`` applied to the specular branch; ``radiance_pool``
-        only where the branch's colour is log-encoded)."""
+        """The architecture of branch ``branch`` (``specular_widths`` applied to the specular branch; ``radiance_pool`` and
+        ``radiance_mix`` only where the branch's colour is log-encoded)."""
         cfg = self
-        if self.radiance_pool and branch not in get_input_spec(self.input_spec).log_branches:
-            cfg = dataclasses.replace(cfg, radiance_pool=False)
+        if branch not in get_input_spec(self.input_spec).log_branches and (self.radiance_pool or self.radiance_mix):
+            cfg = dataclasses.replace(cfg, radiance_pool=False, radiance_mix=False)
         if branch != "specular" or self.specular_widths is None:
             return cfg
         return dataclasses.replace(cfg, widths=list(self.specular_widths), specular_widths=None)

@@ -26,7 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from .kernel_heads import _softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo
+from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
+                           radiance_mixed)
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
 from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
@@ -45,7 +46,11 @@ def clamped_rows(t: torch.Tensor, a: int, b: int) -> torch.Tensor:
     return t.index_select(-2, idx)
 
 
-def _apply(padded: torch.Tensor, weights, k: int) -> torch.Tensor:
+def _apply(padded: torch.Tensor, weights, k: int, mix: torch.Tensor | None = None) -> torch.Tensor:
+    """The kernels ``weights = (unnormalised weights, their sum or None)`` applied to a ``padded`` signal; with a
+    mixing weight ``mix`` (``UNetConfig.radiance_mix``) as :func:`~kpcn.models.kernel_heads.radiance_mixed` does."""
+    if mix is not None:
+        return radiance_mixed(lambda x, wt: _apply(x, wt, k), padded, weights, mix)
     w, norm = weights
     f = kernel_apply_padded(padded, w, k)
     return f.div_(norm) if norm is not None else f
@@ -174,14 +179,16 @@ class RowStream:
             self._low, self._low_bias = conv1x1_lowp(h, head.weight[:, :h.shape[1]]), head.bias
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
-            weights, alphas, gains = [], [], []
+            weights, alphas, gains, mixes = [], [], [], []
             for level in range(1, cfg.kernel_scales):
                 hd, d = net.heads[level - 1], decoded[level - 1]
-                # the kernel logits and the blending weights as two products: the logits contiguous, made weights in place
-                alpha, gain = blend_weights(conv1x1(d, hd.weight[kk:], hd.bias[kk:])) if hd.out_channels > kk \
-                    else (None, None)
+                # the kernel logits and the other channels as two products: the logits contiguous, made weights in place
+                extra = conv1x1(d, hd.weight[kk:], hd.bias[kk:]) if hd.out_channels > kk else None
+                nb = hd.out_channels - kk - net.mix
+                alpha, gain = blend_weights(extra[:, :nb]) if nb else (None, None)
                 alphas.append(alpha)
                 gains.append(gain)
+                mixes.append(torch.sigmoid(extra[:, nb:]) if net.mix else None)
                 weights.append(_softmax_weights(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), cfg.logit_scale, inplace=True))
             for key, colour in self._half.items():
                 filtered = []
@@ -189,7 +196,7 @@ class RowStream:
                     if level:
                         colour = self._pool(colour)
                     padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
-                    filtered.append(_apply(padded, w, cfg.kernel_size))
+                    filtered.append(_apply(padded, w, cfg.kernel_size, mixes[level]))
                 self._coarse[key] = combine_levels(filtered, alphas, gains)  # gains: None each without band_gain
         self._half = {}
 
@@ -218,17 +225,18 @@ class RowStream:
             low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
         z = upsample2(low, context_rows=True)
         z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
-        nb = self.branch.head_layout[1]
+        _, nb, na, nm = self.branch.head_layout
         alpha, gain = blend_weights(z[:, kk:kk + nb]) if cfg.kernel_scales > 1 else (None, None)
+        mix = torch.sigmoid(z[:, kk + nb + na:]) if nm else None
         i0, n = r0 - e0, r1 - r0
         out = {}
         if self._albedo is not None:  # before the logits' softmax (in place in z)
-            out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:], e0, e1)[..., i0:i0 + n, :]
+            out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:kk + nb + na], e0, e1)[..., i0:i0 + n, :]
         weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
         for key, full in self._full.items():
             colour = F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
                 full[..., e0:e1, :]
-            f = _apply(colour, weights, cfg.kernel_size)
+            f = _apply(colour, weights, cfg.kernel_size, mix)
             if alpha is None:
                 out[key] = f
                 continue
