@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from kpcn.losses import create_loss, list_losses, ms_ssim
+from kpcn.metrics import tonemap
 
 
 def test_ms_ssim_is_one_for_equal_images_and_falls_with_noise():
@@ -80,3 +81,9 @@ def test_coarse_term_weighs_lost_energy_not_zero_mean_grain():
     assert float(create_loss("log_msssim", {"coarse_weight": 0.0})(x, y)) == plain
     assert float(create_loss("log_msssim", {"coarse_weight": 2.0})(x, y)) == pytest.approx(
         plain + 2.0 * float(coarse_log_l1(x, y)), rel=1e-6)
+    # tone_l2_weight adds the mean squared error of the tone-mapped colours (the report's PSNR), 0 when equal
+    tone = torch.from_numpy(tonemap(x.numpy())) - torch.from_numpy(tonemap(y.numpy()))
+    assert float(create_loss("log_msssim", {"tone_l2_weight": 50.0})(x, y)) == pytest.approx(
+        plain + 50.0 * float(tone.square().mean()), rel=1e-3)
+    assert float(create_loss("log_msssim", {"tone_l2_weight": 50.0})(y, y)) == pytest.approx(
+        float(create_loss("log_msssim")(y, y)), abs=1e-6)

@@ -178,14 +178,21 @@ def coarse_log_l1(x: torch.Tensor, y: torch.Tensor, pools=(4, 16)) -> torch.Tens
 
 @register_loss("log_msssim")
 def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coarse_weight: float = 0.0,
-               coarse_pools=(4, 16)) -> torch.Tensor:
+               coarse_pools=(4, 16), tone_l2_weight: float = 0.0) -> torch.Tensor:
+    """The log loss + ``ssim_weight`` · (1 − MS-SSIM of the tone-mapped colours), ``+ coarse_weight`` ·
+    :func:`coarse_log_l1`, ``+ tone_l2_weight`` · the mean squared error of the tone-mapped colours (what the
+    report's PSNR measures). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
+    input can stand for is skewed (a glossy highlight a few samples missed); a squared error's optimum is the mean."""
     def tone(t):  # kpcn.metrics.tonemap; the offset keeps the gamma's slope finite at 0
         t = t.clamp_min(0)
         return (t / (1 + t) + 1e-4) ** (1 / 2.2)
 
-    loss = log_loss(x, y) + ssim_weight * (1 - ms_ssim(tone(x), tone(y), _ms_scales(x)))
+    tx, ty = tone(x), tone(y)
+    loss = log_loss(x, y) + ssim_weight * (1 - ms_ssim(tx, ty, _ms_scales(x)))
     if coarse_weight:
         loss = loss + coarse_weight * coarse_log_l1(x, y, tuple(coarse_pools))
+    if tone_l2_weight:
+        loss = loss + tone_l2_weight * (tx - ty).square().mean()
     return loss
 
 
