@@ -544,6 +544,17 @@ def test_train_only_trains_the_radiance_mix_heads_alone(tiny_dataset, tmp_path, 
         else:
             assert torch.equal(v, old[k]), f"{k} was trained though train_only leaves it out"
     assert moved and all(moved)
+    # "<glob>[-1]": only the last row (the mixing logit) of each specular head learns, the kernels stay the file's
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "e", dict(kw, radiance_mix=True), init=src, init_extend=True,
+                         lr=1e-2, stage1_steps=3, train_only=["specular.head.*[-1]", "specular.heads.*[-1]"]),
+          progress=False)
+    rows = load_model(str(tmp_path / "e" / "model.safetensors"), device="cpu").state_dict()
+    first = start.state_dict()  # the mixing rows as init_extend starts them
+    for k, v in rows.items():
+        if k.startswith(("specular.head.", "specular.heads.")):
+            assert torch.equal(v[:-1], old[k]) and not torch.equal(v[-1], first[k][-1]), k
+        else:
+            assert torch.equal(v, old[k]), k
     with pytest.raises(ConfigError, match="name no parameter"):
         train(_tiny_unet_cfg(tiny_dataset, tmp_path, "d", kw, train_only=["specular.nothing*"]), progress=False)
 

@@ -210,9 +210,25 @@ def _widen(k: str, v: torch.Tensor, t: torch.Tensor, src, dst, path, prune: bool
     return w
 
 
+def _split_rows(pattern: str) -> tuple[str, slice | None]:
+    """``"glob"`` -> (glob, None); ``"glob[i]"`` / ``"glob[a:b]"`` -> (glob, that slice of the first dimension)."""
+    m = re.fullmatch(r"(.+)\[(-?\d*)(:?)(-?\d*)\]", pattern)
+    if not m:
+        return pattern, None
+    glob, a, colon, b = m.groups()
+    if not colon:
+        if not a:
+            raise ConfigError(f"train.train_only: {pattern!r}: expected '<glob>[i]' or '<glob>[a:b]'")
+        i = int(a)
+        return glob, slice(i, i + 1 if i != -1 else None)
+    return glob, slice(int(a) if a else None, int(b) if b else None)
+
+
 def freeze_except(model: torch.nn.Module, patterns) -> int:
     """``train.train_only``: freeze every parameter of ``model`` whose name matches none of the glob ``patterns``
-    (``requires_grad`` False; nothing when ``patterns`` is empty) and return how many parameters stay trainable.
+    (``requires_grad`` False; nothing when ``patterns`` is empty) and return how many parameter values stay trainable.
+    A pattern ``"<glob>[i]"`` or ``"<glob>[a:b]"`` trains only those rows (first dimension: a conv's output
+    channels) of what it matches: the other rows' gradients are zeroed (Adam then leaves them as they are).
 
     Raises:
         ConfigError: a pattern that matches no parameter (listing a few names).
@@ -220,13 +236,23 @@ def freeze_except(model: torch.nn.Module, patterns) -> int:
     names = [n for n, _ in model.named_parameters()]
     if not patterns:
         return sum(p.numel() for p in model.parameters())
-    unused = [pat for pat in patterns if not any(fnmatch.fnmatchcase(n, pat) for n in names)]
+    parsed = [_split_rows(pat) for pat in patterns]
+    unused = [pat for pat, (glob, _) in zip(patterns, parsed) if not any(fnmatch.fnmatchcase(n, glob) for n in names)]
     if unused:
         raise ConfigError(f"train.train_only: {', '.join(map(repr, unused))} name no parameter of the model (it has "
                           f"{len(names)}, e.g. {', '.join(names[:3])}, ..., {names[-1]})")
     kept = 0
     for n, p in model.named_parameters():
-        p.requires_grad_(any(fnmatch.fnmatchcase(n, pat) for pat in patterns))
-        kept += p.numel() if p.requires_grad else 0
+        rows = [r for glob, r in parsed if fnmatch.fnmatchcase(n, glob)]
+        p.requires_grad_(bool(rows))
+        if not rows:
+            continue
+        if any(r is None for r in rows):
+            kept += p.numel()
+            continue
+        mask = torch.zeros_like(p)
+        for r in rows:
+            mask[r] = 1
+        p.register_hook(lambda g, mask=mask: g * mask)
+        kept += int(mask.sum())
     return kept
-
