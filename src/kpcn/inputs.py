@@ -42,6 +42,7 @@ from .noise import REVISION as NOISE_REVISION, noise_precision
 __all__ = [
     "InputSpec",
     "SPECULAR_LOG_MAX",
+    "radiance_of",
     "register_input_spec",
     "get_input_spec",
     "list_input_specs",
@@ -52,6 +53,12 @@ __all__ = [
 #: Upper clamp of the specular branch output (log1p space) before ``expm1``;
 #: ``expm1(80) ~ 5.5e34`` is finite in float32.
 SPECULAR_LOG_MAX = 80.0
+
+
+def radiance_of(x: torch.Tensor) -> torch.Tensor:
+    """The radiance ``expm1(x)`` of a ``log1p``-encoded colour (the specular branch's), ``x`` clamped to
+    ``[0, SPECULAR_LOG_MAX]`` first (``log1p`` of a radiance ≥ 0; finite in float32)."""
+    return torch.expm1(x.clamp(0.0, SPECULAR_LOG_MAX))
 
 Tensors = dict[str, torch.Tensor]
 
@@ -196,7 +203,7 @@ def split_reconstruct(outputs: Tensors, inputs: Tensors) -> torch.Tensor:
     if outputs.get("diffuse") is not None:
         color = color + (albedo + EPS) * outputs["diffuse"].clamp(min=0)
     if outputs.get("specular") is not None:
-        color = color + torch.expm1(outputs["specular"].clamp(0.0, SPECULAR_LOG_MAX))
+        color = color + radiance_of(outputs["specular"])
     return finite_nonneg(color)
 
 

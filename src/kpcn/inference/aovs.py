@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..constants import EPS
-from ..inputs import SPECULAR_LOG_MAX, InputSpec
+from ..inputs import InputSpec, radiance_of
 from ..features import frame_to_tensors
 from ..io import Frame, MissingLayerError
 
@@ -136,7 +136,7 @@ def compose_aovs(plans: list[AovPlan], run, filtered: dict[str, dict[str, torch.
             elif b == "specular":
                 total, part = filtered[b]["specular|pos"], filtered[b][f"{name}|pos"]
                 total_n, part_n = noisy[b]["specular|pos"], noisy[b][f"{name}|pos"]
-                beauty = torch.expm1(outputs[b].clamp(0.0, SPECULAR_LOG_MAX))
+                beauty = radiance_of(outputs[b])
                 fallback = torch.where(total_n > 0, part_n / total_n.clamp_min(1e-30), torch.full_like(part, 1.0 / n_spec))
                 share = torch.where(total > SHARE_FLOOR * beauty, part / total.clamp_min(1e-30), fallback)
                 value = value + beauty * share

@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..inputs import SPECULAR_LOG_MAX
 from ..ops.kernel_apply import KernelApply
+from ..inputs import radiance_of
 from .layers import conv1x1, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
@@ -91,10 +91,10 @@ def albedo_bound(variance: torch.Tensor, c: float) -> torch.Tensor:
 def radiance_mixed(apply, colour: torch.Tensor, weights, gamma: torch.Tensor) -> torch.Tensor:
     """``lerp(K ⊛ c, log1p(K ⊛ expm1(c)), γ)`` (``UNetConfig.radiance_mix``) of a ``log1p``-encoded colour
     ``(B, C, H, W)`` with a per-pixel weight ``γ`` ``(B, 1, H, W)`` in ``[0, 1]``: ``apply(x, weights)`` is the
-    kernel's application (called once, on the colour and its radiance side by side); ``c`` is clamped to
-    ``[0, SPECULAR_LOG_MAX]`` for the radiance. Both filters keep a constant and a zero, so the mix does."""
+    kernel's application (called once, on the colour and its radiance side by side; the radiance
+    :func:`~kpcn.inputs.radiance_of`, ``c`` clamped). Both filters keep a constant and a zero, so the mix does."""
     c = colour.shape[1]
-    both = apply(torch.cat([colour, torch.expm1(colour.clamp(0.0, SPECULAR_LOG_MAX))], dim=1), weights)
+    both = apply(torch.cat([colour, radiance_of(colour)], dim=1), weights)
     return torch.lerp(both[:, :c], torch.log1p(both[:, c:].clamp_min(0.0)), gamma.to(both.dtype))
 
 

@@ -54,7 +54,7 @@ import torch
 from torch import nn
 
 from ..constants import EPS
-from ..inputs import SPECULAR_LOG_MAX, split_reconstruct
+from ..inputs import SPECULAR_LOG_MAX, radiance_of, split_reconstruct
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel
 from .branch import BranchConfig, _check_branch_input, _conv_stack
@@ -176,7 +176,7 @@ class DPCNBranch(nn.Module):
         _check_branch_input(x, self.config, type(self).__name__)
         base = torch.log1p(x[:, :3].clamp_min(0.0))
         y = base + self.net(transform_input(x, self.config.input_transform))
-        return torch.expm1(y.clamp(0.0, SPECULAR_LOG_MAX))
+        return radiance_of(y)
 
 
 _BRANCHES = {"kpcn": KPCNBranch, "dpcn": DPCNBranch}

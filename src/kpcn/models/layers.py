@@ -19,11 +19,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..inputs import SPECULAR_LOG_MAX, get_input_spec
+from ..inputs import get_input_spec, radiance_of
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1", "conv1x1_lowp",
-           "Conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1",
+           "conv1x1_lowp", "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "UpAddConv", "relu_", "ReLU"]
 
 INPUT_TRANSFORMS = ("logvar", "log", "none")
@@ -107,7 +107,7 @@ def pool2_radiance(x: torch.Tensor) -> torch.Tensor:
     logarithm of the block's mean radiance rather than the mean of its logarithms (below it by Jensen's
     inequality: darker wherever a block's pixels differ). Applied twice it is the 4×4 mean's; a constant stays
     as it is. ``x`` is clamped to ``[0, SPECULAR_LOG_MAX]`` first (``log1p`` of a radiance ≥ 0; finite sums)."""
-    return torch.log1p(pool2(torch.expm1(x.clamp(0.0, SPECULAR_LOG_MAX))))
+    return torch.log1p(pool2(radiance_of(x)))
 
 
 def upsample2(x: torch.Tensor, context_rows: bool = False) -> torch.Tensor:

@@ -150,14 +150,11 @@ class UNetConfig:
         if self.band_gain and self.kernel_scales < 2:
             raise ValueError("UNetConfig.band_gain needs kernel_scales >= 2 (the gain is of the band a coarser "
                              "kernel level does not replace)")
-        if self.radiance_pool and (self.kernel_scales < 2 or not spec.log_branches):
-            raise ValueError(f"UNetConfig.radiance_pool needs kernel_scales >= 2 and an input spec with a "
-                             f"log1p-encoded branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
-                             f"(log_branches {spec.log_branches})")
-        if self.radiance_mix and (self.kernel_scales < 2 or not spec.log_branches):
-            raise ValueError(f"UNetConfig.radiance_mix needs kernel_scales >= 2 and an input spec with a "
-                             f"log1p-encoded branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
-                             f"(log_branches {spec.log_branches})")
+        for key in ("radiance_pool", "radiance_mix"):
+            if getattr(self, key) and (self.kernel_scales < 2 or not spec.log_branches):
+                raise ValueError(f"UNetConfig.{key} needs kernel_scales >= 2 and an input spec with a log1p-encoded "
+                                 f"branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
+                                 f"(log_branches {spec.log_branches})")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:

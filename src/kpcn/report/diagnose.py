@@ -28,7 +28,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from ..data import pair_tensors
-from ..inputs import SPECULAR_LOG_MAX, split_reconstruct
+from ..inputs import radiance_of, split_reconstruct
 from ..io.frame import Frame
 from ..io.read import read_exr
 from ..metrics import psnr, relmse, tonemap
@@ -73,7 +73,7 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
     with torch.no_grad():
         out = net({k: t[k] for k in (*spec.branches, "albedo")})
     colour = _hwc(out["color"])
-    spec_rad = _hwc(torch.expm1(out["specular"].clamp(0.0, SPECULAR_LOG_MAX)))
+    spec_rad = _hwc(radiance_of(out["specular"]))
     diff_rad = colour - spec_rad
     ref_d, ref_s = np.clip(ref["diffuse"], 0, None), np.clip(ref["specular"], 0, None)
     target = _hwc(t["y_color"])  # the spec's colour target: the two parts' sum
