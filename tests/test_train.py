@@ -759,3 +759,39 @@ def test_converged_max_noise_leaves_out_the_noisy_pixels_of_converged_patches(ti
     cfg.name, cfg.model["input_spec"] = "cmn2", "split_novar"
     with pytest.raises(ConfigError, match="converged_max_noise.*split_novar"):
         train(cfg, progress=False)
+
+
+def test_distill_min_spp_teaches_the_init_files_outputs_on_high_spp_patches(tiny_dataset, tmp_path):
+    """``train.distill_min_spp``: patches with that many spp or more are taught the ``init`` file's own outputs (a
+    run from a file on 8-spp patches alone starts at a loss of 0, the same run without the option does not); in a
+    batch of 4- and 8-spp patches only the 8-spp ones get the teacher's targets; refused without ``init``."""
+    from kpcn.config import ConfigError
+    from kpcn.data import PatchDataset
+    from kpcn.inference import load_model
+    from kpcn.train import split_pairs
+    from kpcn.train_steps import distill_targets, model_inputs
+
+    train(tiny_cfg(tiny_dataset, tmp_path, name="a", stage1_steps=3, stage2_steps=0), progress=False)
+    src = str(tmp_path / "a" / "model.safetensors")
+    losses = {}
+    for name, extra in (("dist", {"distill_min_spp": 8}), ("ref", {})):
+        cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, init=src, lr=1e-12, stage1_steps=2, stage2_steps=1, **extra)
+        cfg.data.spp = [8]
+        losses[name] = train(cfg, progress=False)["losses"]
+    assert max(losses["dist"]) < 1e-6, losses["dist"]
+    assert min(losses["ref"]) > 1e-3, losses["ref"]
+
+    ds = PatchDataset(split_pairs(tiny_cfg(tiny_dataset, tmp_path))[0], 24, 8, seed=1, label_spp=True)
+    batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])
+    assert sorted(set(batch["spp"].tolist())) == [4, 8]
+    teacher = load_model(src, device="cpu")
+    got = distill_targets(teacher, batch, 8)
+    hi = batch["spp"] >= 8
+    with torch.no_grad():
+        want = teacher({k: v[hi] for k, v in model_inputs(teacher, batch).items()})
+    for k in ("diffuse", "specular", "color"):
+        torch.testing.assert_close(got[f"y_{k}"][hi], want[k])
+        assert not torch.allclose(batch[f"y_{k}"][hi], want[k]), f"y_{k}: the references were the teacher's already"
+        assert torch.equal(got[f"y_{k}"][~hi], batch[f"y_{k}"][~hi])
+    with pytest.raises(ConfigError, match="needs train.init"):
+        train(tiny_cfg(tiny_dataset, tmp_path, name="d", distill_min_spp=8), progress=False)

@@ -192,7 +192,9 @@ class PatchDataset(Dataset):
     Items are dicts of float32 ``(C, size, size)`` tensors: one per branch of the spec
     (``diffuse``, ``specular`` for the split specs), ``albedo``, ``y_<branch>``,
     ``y_color`` and ``noisy_color``; where ``pairs`` hold converged pairs (spp
-    :data:`CONVERGED_SPP`), also ``converged``: a 0-d bool tensor, True on their patches.
+    :data:`CONVERGED_SPP`), also ``converged``: a 0-d bool tensor, True on their patches; with
+    ``label_spp``, also ``spp``: a 0-d int64 tensor, the input's samples per pixel (``CONVERGED_SPP`` for a
+    converged pair).
     """
 
     def __init__(
@@ -206,6 +208,7 @@ class PatchDataset(Dataset):
         store: str | Path | None = None,
         progress: bool = False,
         store_workers: int | None = None,
+        label_spp: bool = False,
     ):
         if sampling not in ("importance", "uniform"):
             raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
@@ -213,6 +216,7 @@ class PatchDataset(Dataset):
             raise ValueError("PatchDataset: no frames")
         self.pairs = list(pairs)
         self._flag_converged = any(p.spp == CONVERGED_SPP for p in self.pairs)
+        self.label_spp = label_spp
         self.patch_size = patch_size
         self.sampling = sampling
         self.frames, self.importance = [], []
@@ -274,6 +278,8 @@ class PatchDataset(Dataset):
             item = {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
         if self._flag_converged:
             item["converged"] = torch.tensor(self.pairs[f].spp == CONVERGED_SPP)
+        if self.label_spp:
+            item["spp"] = torch.tensor(int(self.pairs[f].spp))
         return item
 
 

@@ -97,7 +97,9 @@ from .train_steps import (
     _tonemap_t,
     batches,
     build_model,
+    build_teacher,
     compute_loss,
+    distill_targets,
     model_inputs,
     set_lr,
     stage_of,
@@ -161,7 +163,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         # what is missing or stale and the others find it done
         ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling,
                           cfg.train.seed, spec=spec, store=store_dir(cfg, spec), progress=progress and d.main,
-                          store_workers=cfg.data.prepare_workers)
+                          store_workers=cfg.data.prepare_workers, label_spp=cfg.train.distill_min_spp is not None)
         per_rank = max(1, cfg.train.batch_size // d.world)
         if len(ds) // d.world < per_rank:
             raise ConfigError(f"train.batch_size: {cfg.train.batch_size} is more than the {len(ds)} training "
@@ -173,6 +175,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         return ds, FrameDataset(val_pairs, spec=spec)
 
     ds, val = _agree(load_data)
+    teacher = _agree(lambda: build_teacher(cfg, model, d.device)) if cfg.train.distill_min_spp is not None else None
 
     # 3. rank 0 writes: only now does the run folder change
     step = int(state["step"]) if state else 0
@@ -248,6 +251,8 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         batch = {k: v.to(d.device, non_blocking=True) for k, v in batch.items()}
         if cfg.train.augment:  # the same transforms for the same (seed, step, rank): resumable
             batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
+        if teacher is not None:  # after augmenting: the teacher sees what the model sees
+            batch = distill_targets(teacher, batch, cfg.train.distill_min_spp)
         lr_now = set_lr(optimizer, step, cfg)
         out = ddp(model_inputs(model, batch))
         loss = compute_loss(out, batch, stage, cfg, spec.branches, spec)

@@ -169,6 +169,12 @@ class TrainConfig:
     #: frozen (no gradient, left out of the optimiser, and the frozen part of the network runs without autograd).
     #: Empty: all of them. A pattern that names no parameter is refused
     train_only: list[str] = field(default_factory=list)
+    #: patches whose input has at least this many samples per pixel (converged pairs excepted) are taught the
+    #: ``init`` file's own outputs on them instead of their references (every ``y_<output>`` the file's model
+    #: gives): training on low-spp data and a new loss keeps what the file does at high spp, with no references
+    #: fine enough for high-spp inputs (a 512-spp reference has half a 256-spp input's noise). Needs ``init``;
+    #: the file's model must read the config's input spec. None: off
+    distill_min_spp: int | None = None
     #: dtype of the model's hidden layers (``DenoiserModel.set_compute_dtype``): float32, or bfloat16 (autocast
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
@@ -208,6 +214,10 @@ class TrainConfig:
                                   f"got {entry!r}")
         if not all(isinstance(p, str) and p for p in self.train_only):
             raise ConfigError(f"train.train_only: expected a list of parameter-name patterns, got {self.train_only!r}")
+        if self.distill_min_spp is not None:
+            if not self.init:
+                raise ConfigError("train.distill_min_spp: needs train.init (its model is the teacher)")
+            _at_least("train", self, "distill_min_spp", 1)
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:

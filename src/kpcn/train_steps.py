@@ -13,7 +13,8 @@ from .models import create_model
 from .schedule import lr_at
 from .train_config import RunConfig
 
-__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "compute_loss", "batches", "validate"]
+__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "compute_loss",
+           "batches", "validate"]
 
 
 def build_model(cfg: RunConfig) -> torch.nn.Module:
@@ -44,6 +45,46 @@ def set_lr(optimizer, step: int, cfg: RunConfig) -> float:
 def model_inputs(model, batch: dict) -> dict:
     """The entries of ``batch`` the model reads: its spec's branches and the albedo."""
     return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
+
+
+def build_teacher(cfg: RunConfig, model, device) -> torch.nn.Module:
+    """The ``train.init`` file's own model (before any ``init_extend`` or ``init_reopen``), frozen, in eval mode
+    and ``train.precision``: the teacher of ``train.distill_min_spp``.
+
+    Raises:
+        ConfigError: the file's model reads another input spec than ``model``.
+    """
+    from .checkpoint import load_model_file
+    from .config import ConfigError
+    from .inference.weights import resolve_weights
+
+    teacher = load_model_file(resolve_weights(cfg.train.init)).to(device).eval()
+    have, want = teacher.input_spec.name, _unwrap(model).input_spec.name
+    if have != want:
+        raise ConfigError(f"train.distill_min_spp: the init file's model reads {have}, the config's {want}: "
+                          f"it cannot be the teacher of these inputs")
+    teacher.set_compute_dtype(cfg.train.precision)
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    return teacher
+
+
+@torch.no_grad()
+def distill_targets(teacher, batch: dict, min_spp: int) -> dict:
+    """``batch`` with the targets of its patches whose input has ``min_spp`` or more samples per pixel
+    (``batch["spp"]``, ``(B,)``; converged pairs, spp 0, are never) replaced by ``teacher``'s outputs on them:
+    ``y_<k>`` for every output ``k`` of ``teacher`` that the batch has a target for. The batch is not changed."""
+    pick = batch["spp"] >= min_spp
+    if not bool(pick.any()):
+        return batch
+    out = teacher({k: v[pick] for k, v in model_inputs(teacher, batch).items()})
+    batch = dict(batch)
+    for k, v in out.items():
+        if f"y_{k}" in batch:
+            y = batch[f"y_{k}"].clone()
+            y[pick] = v.to(y.dtype)
+            batch[f"y_{k}"] = y
+    return batch
 
 
 def unconverged_pixels(batch: dict, spec, max_noise: float) -> torch.Tensor | None:
