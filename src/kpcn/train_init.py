@@ -15,21 +15,27 @@ from .config import ConfigError, to_dict
 from .models.registry import create_model, model_config_class
 from .train_config import RunConfig
 
-__all__ = ["load_init"]
+__all__ = ["load_init", "resolve_init"]
+
+
+def resolve_init(cfg: RunConfig):
+    """The weights file ``cfg.train.init`` names (a ``.safetensors`` path or a shipped ``model:tag``);
+    :class:`ConfigError` when there is none."""
+    from .inference.weights import DefaultWeightsMissing, resolve_weights
+
+    try:
+        return resolve_weights(cfg.train.init)
+    except (DefaultWeightsMissing, FileNotFoundError) as exc:
+        raise ConfigError(f"train.init: no weights file {cfg.train.init!r} (a .safetensors path or a shipped "
+                          f"model:tag): {exc}") from None
 
 
 def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     """Load ``cfg.train.init`` (a weights file or a shipped ``model:tag``) into ``model``; the file's
     model and the hyper-parameters the config sets must agree (:class:`ConfigError` otherwise)."""
     from .checkpoint import read_weights
-    from .inference.weights import DefaultWeightsMissing, resolve_weights
 
-    init = cfg.train.init
-    try:
-        path = resolve_weights(init)
-    except (DefaultWeightsMissing, FileNotFoundError) as exc:
-        raise ConfigError(f"train.init: no weights file {init!r} (a .safetensors path or a shipped model:tag): "
-                          f"{exc}") from None
+    path = resolve_init(cfg)
     record, weights = read_weights(path)
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",

@@ -52,13 +52,14 @@ def build_teacher(cfg: RunConfig, model, device) -> torch.nn.Module:
     and ``train.precision``: the teacher of ``train.distill_min_spp``.
 
     Raises:
-        ConfigError: the file's model reads another input spec than ``model``.
+        ConfigError: no such file (a resumed run reads it here first), or its model reads another input spec
+            than ``model``.
     """
     from .checkpoint import load_model_file
     from .config import ConfigError
-    from .inference.weights import resolve_weights
+    from .train_init import resolve_init
 
-    teacher = load_model_file(resolve_weights(cfg.train.init)).to(device).eval()
+    teacher = load_model_file(resolve_init(cfg)).to(device).eval()
     have, want = teacher.input_spec.name, _unwrap(model).input_spec.name
     if have != want:
         raise ConfigError(f"train.distill_min_spp: the init file's model reads {have}, the config's {want}: "

@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..ops.kernel_apply import KernelApply
 from ..inputs import radiance_of
+from ..ops.kernel_apply import KernelApply
 from .layers import conv1x1, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
