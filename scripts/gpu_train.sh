@@ -27,6 +27,10 @@ BUDGET=${BUDGET:-540}; RENDER_S=${RENDER_S:-180}; PROBE=${PROBE:-200}
 PY=${PY:-python3}; RES=${RES:-256}; SPP=${SPP:-"2 4 8 16 32 64 128 256 512"}; REF=${REF:-2048}
 PROCS=${PROCS:-16}; FIRST=${FIRST:-60001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
 el() { echo $(( $(date +%s) - T0 )); }
+# renders started before RENDER_S finish up to ~30 s after it, the store and the probe's first 100 steps take ~60 s
+# more: a shorter lease trains nothing (twenty-sixth session: BUDGET=205 RENDER_S=65 stopped its probe at step 100)
+[ "$BUDGET" -ge $((RENDER_S + 200)) ] || { echo "gpu_train: BUDGET=$BUDGET leaves no time to train after" \
+  "RENDER_S=$RENDER_S (needs BUDGET >= RENDER_S + 200)" >&2; exit 2; }
 mkdir -p "$W" "$OUT"
 if [ -f .gpu/site.tar.xz ] && [ -z "${NO_SITE:-}" ]; then
   mkdir -p /tmp/site && tar xJf .gpu/site.tar.xz -C /tmp/site || exit 3
