@@ -2,7 +2,7 @@
 # One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
 # scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
 # U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
-# configs/unet_wide64c.yaml, the shipped default's; INIT: the weights it starts from, default unet_kpcn:wide64c; LR:
+# configs/unet_wide64h.yaml, the shipped default's; INIT: the weights it starts from, default unet_kpcn:wide64h; LR:
 # the peak rate).
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
@@ -69,12 +69,12 @@ from kpcn.render import dataset_status
 w = Path(sys.argv[1])
 roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
 print(len(roots), "complete scenes", flush=True)
-base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64c.yaml")))
+base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64h.yaml")))
 d = base["data"]
 d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)),
          spp_by_root={}, balance_spp=False)  # every fresh scene at every spp
-base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64c"), init_extend=True, init_reopen=[],
+base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64h"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
 yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)

@@ -32,7 +32,7 @@ __all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_
            "resolve_weights", "resolve_device", "describe"]
 
 #: the model ``denoise(path)`` uses when none is given (its default shipped weights)
-DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:wide64c (configs/unet_wide64c.yaml)
+DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:wide64h (configs/unet_wide64h.yaml)
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
 DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",

@@ -200,12 +200,17 @@ register_weights("unet_kpcn", "wide64b", "unet_wide64b.safetensors",
                              "spp and 229 fresh CPU scenes at 2-16 spp only (data.spp_by_root), each spp's pairs "
                              "listed equally often (data.balance_spp); ahead of OIDN on 17 of the 21 report figures at "
                              "4-256 spp (wide64s 16)")
-register_weights("unet_kpcn", "wide64c", "unet_wide64c.safetensors", default=True,
+register_weights("unet_kpcn", "wide64c", "unet_wide64c.safetensors",
                  description="unet_kpcn:wide64b (the same network, 98 k multiply-adds per pixel) with its specular "
                              "branch's level-1 blending weight reopened (train.init_reopen: dead since unet_kpcn:fast, "
                              "so the specular 1/4 and 1/8 kernel levels were never used) and its colour pooled to the "
                              "coarse levels as radiance (radiance_pool), trained 3000 steps of batch 16 on the CPU "
                              "(configs/unet_wide64c.yaml) with 268 fresh scenes at 2-8 spp")
+register_weights("unet_kpcn", "wide64h", "unet_wide64h.safetensors", default=True,
+                 description="unet_kpcn:wide64c (the same network, 98 k multiply-adds per pixel) trained about 2800 "
+                             "steps of batch 32 of 128² on one GPU on 85 procedural 256x256 scenes rendered there "
+                             "(2-512 spp, 2048-spp references; log_msssim with tone_l2_weight 100), then blended "
+                             "0.7 / 0.3 with wide64c in weight space (python -m kpcn.soup; configs/unet_wide64h.yaml)")
 register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                  description="unet_kpcn:wide64g with up_kernel 1 (each decoder level's first conv reads the coarser "
                              "level through a 1x1 at its own resolution), 126 k multiply-adds per pixel, its convolutions "
