@@ -14,13 +14,13 @@ Python API::
     result.summary["equal_time_headline"]                   # the median equal-time figure, scenes left out
     result.paths["markdown"]                                # report.md
 
-Scenes: ``random:<seed>`` (procedural; the defaults use seeds 900001-900003,
+Scenes: ``random:<seed>`` (procedural; the defaults use seeds 900001-900003 and 910001-910006,
 far from the training data's), ``test:<name>`` (:func:`kpcn.scenes.list_test_scenes`),
 ``file:<name>`` (the Mitsuba XML files shipped in ``kpcn/scenes/files/``,
 :func:`kpcn.scenes.list_scene_files`) or the path of any XML scene file.
-The default: 10 scenes (3 procedural, 3 test scenes, the 4 shipped files) at
+The default: 16 scenes (9 procedural, 3 test scenes, the 4 shipped files) at
 256x256, spp 2, 4, … 256, a 1024-spp converged input and a 2048-spp reference:
-about 80 minutes on a 2-core CPU (docs/measured.md).
+about 100 minutes on a 2-core CPU (docs/measured.md).
 
 What it does, per scene:
 
