@@ -84,7 +84,7 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
             "model.layers=3", "model.width=8", "model.kernel_size=5", "train.stage1_steps=3",
             "train.stage2_steps=2", "train.batch_size=4", "train.ckpt_every=100", "train.val_every=1000",
             "train.lr=1e-3", "train.threads=1"]
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone",
            "-m", "kpcn.train", "--no-progress", "--name", "ddp", "--results-dir", str(tmp_path)]
     for s in sets:
         cmd += ["--set", s]
