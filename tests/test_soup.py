@@ -1,4 +1,5 @@
 """kpcn.soup: weight-space blends of two runs of one network, on a real render."""
+import hashlib
 import json
 
 import numpy as np
@@ -90,7 +91,6 @@ def test_the_shipped_default_is_the_blend_its_metadata_records():
     record, _ = read_weights(resolve_weights("unet_kpcn"))
     src = record["soup"]["sources"]
     assert [s["alpha"] for s in src] == [0.7, 0.3] and src[1]["name"] == "unet_kpcn:wide64c"
-    import hashlib
     digest = hashlib.sha256(resolve_weights("unet_kpcn:wide64c").read_bytes()).hexdigest()
     assert src[1]["sha256"] == digest
     json.dumps(record)  # plain JSON all through

@@ -114,8 +114,9 @@ def blend_files(sources: Sequence[str | os.PathLike], alphas: Sequence[float] | 
             diff = sorted(k for k in set(h) | set(h0) if h.get(k) != h0.get(k))
             raise CheckpointError(f"soup: {p} is {r['model']} and {paths[0]} is {records[0]['model']}, "
                                   f"hyper-parameters differing: {diff or 'none'}: not the same network")
-    state = blend_state(states, alphas, [str(p) for p in paths])
-    model = model_from_record(records[0]["model"], records[0]["hparams"], state, "soup")
+    # blend what the built models hold, into the first of them (no further model to build)
+    model = built[0]
+    model.load_state_dict(blend_state([m.state_dict() for m in built], alphas, [str(p) for p in paths]))
     meta = {"sources": [{"name": str(s), "sha256": _sha256(p), "alpha": a}
                         for s, p, a in zip(sources, paths, alphas)]}
     return model, meta
