@@ -6,8 +6,8 @@ and MIS (like Mitsuba's ``path``) and, in the same pass, emits as AOVs:
 * the radiance split into ``diffuse`` (the first surface interaction was a
   diffuse lobe) and ``specular`` (everything else: glossy, delta, emitters seen
   directly), with ``diffuse + specular == colour`` sample by sample;
-* first-hit ``albedo``, shading ``normal`` (world space) and ``depth``
-  (distance, 0 where nothing was hit). The albedo is the BSDF's diffuse
+* first-hit ``albedo``, shading ``normal`` (world space; bump-mapped where the BSDF
+  bump-maps it, :mod:`kpcn.bump`) and ``depth`` (distance, 0 where nothing was hit). The albedo is the BSDF's diffuse
   reflectance where it has a diffuse lobe (diffuse, plastic, principled, ...);
   where it has none (conductors, glass) it is the weight of the first bounce's
   BSDF sample, ``f·cos/pdf``, times ``η²`` where it refracts (undoing the
@@ -36,6 +36,10 @@ from __future__ import annotations
 #: 2 that where the BSDF has a diffuse lobe, else the first bounce's BSDF-sample weight (times eta² where it
 #: refracts), clamped to [0, 1]
 ALBEDO_REVISION = 2
+#: what the ``normal`` layer holds (the render record's ``normal``): 1 Mitsuba's interpolated shading normal
+#: ``si.sh_frame.n``, blind to bump maps; 2 the normal a ``bumpmap`` BSDF shades with where there is one
+#: (:mod:`kpcn.bump`), as other renderers' normal passes hold it
+NORMAL_REVISION = 2
 
 #: first-moment AOVs (the colour itself is the film's R, G, B)
 MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))
@@ -64,6 +68,8 @@ def register() -> str:
         return "kpcn_split"
     import drjit as dr
     import mitsuba as mi
+
+    from .bump import find_bump_maps, mapped_normal
 
     def mis_weight(a, b):
         w = a / (a + b)
@@ -107,6 +113,7 @@ def register() -> str:
             # no diffuse lobe (metals, glass): the first BSDF sample's weight, set at bounce 0 below
             no_diffuse = hit0 & ~mi.has_flag(bsdf0.flags(), mi.BSDFFlags.Diffuse)
             normal = dr.select(hit0, mi.Vector3f(si.sh_frame.n), mi.Vector3f(0.0))
+            normal = mapped_normal(find_bump_maps(scene), si, bsdf0, normal, hit0)
             depth = dr.select(hit0, si.t, 0.0)
             if self.albedo_only:  # the sampler's dimensions as bounce 0 below draws them: emitter, then BSDF
                 sampler.next_2d()

@@ -55,22 +55,27 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
 
 
 def warn_outdated_albedo(roots) -> int:
-    """Warn about data sets whose Mitsuba frames were rendered before the current albedo revision
+    """Warn about data sets whose Mitsuba frames were rendered before the current albedo or normal revision
     (:mod:`kpcn.render.albedo`); returns how many such frames there are."""
     from .render import dataset_status
-    from .render.albedo import ALBEDO_REVISION
+    from .render.albedo import ALBEDO_REVISION, NORMAL_REVISION
     from .render.cycles_scene import is_generated
 
     total = 0
     for root in roots:
         status = dataset_status(root)
         frames = [rec for sc in (status.manifest or {}).get("scenes", []) for rec in sc.get("frames", {}).values()]
-        old = sum(1 for rec in frames if not is_generated(rec.get("source")) and rec.get("albedo", 1) < ALBEDO_REVISION)
+        mitsuba = [rec for rec in frames if not is_generated(rec.get("source"))]
+        old = sum(1 for rec in mitsuba if rec.get("albedo", 1) < ALBEDO_REVISION)
         if old:
             log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
                         "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),
                         status.command())
-        total += old
+        old_normal = sum(1 for rec in mitsuba if rec.get("normal", 1) < NORMAL_REVISION)
+        if old_normal:
+            log.warning("%s: %d of %d frames have normal revision 1 (blind to bump maps); `%s` rewrites their "
+                        "normal layers only", root, old_normal, len(frames), status.command())
+        total += max(old, old_normal)
     return total
 
 

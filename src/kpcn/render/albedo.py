@@ -1,31 +1,36 @@
-"""Bring frames rendered before albedo revision 2 up to date without rendering them again.
+"""Bring frames rendered before the current albedo or normal revision up to date without rendering them again.
 
 Albedo revision 1 (``kpcn.integrator``) wrote Mitsuba's ``eval_diffuse_reflectance`` for every
 BSDF. On a BSDF without a diffuse lobe that evaluates the glossy lobe at normal incidence: values up
 to 37 on rough metals seen head-on and near 0 beside them, a guide that says nothing about the
-surface. Revision 2 writes the directional albedo there instead.
+surface. Revision 2 writes the directional albedo there instead. Normal revision 1 wrote Mitsuba's
+interpolated shading normal, blind to bump maps; revision 2 writes the bumped normal (:mod:`kpcn.bump`).
 
-A frame's albedo depends only on its first hit and its first BSDF sample, so it can be rendered
-alone (``render_frame(..., albedo_only=True)``: a camera ray and three BSDF calls per sample, no
-paths) with the frame's own seed and role and comes out as a full render would write it. The frame
-keeps its radiance layers, normal, depth and their variances bit for bit; only ``albedo`` and
-``albedoVariance`` are replaced, and the file is rewritten atomically.
+A frame's albedo and normal depend only on its first hit and its first BSDF sample, so they can be
+rendered alone (``render_frame(..., albedo_only=True)``: a camera ray and three BSDF calls per sample,
+no paths) with the frame's own seed and role and come out as a full render would write them. The frame
+keeps its radiance layers, depth and their variances bit for bit; only the outdated layers
+(``albedo``/``albedoVariance``, ``normal``/``normalVariance``) are replaced, and the file is rewritten
+atomically.
 
 ``python -m kpcn.render dataset`` does this by itself for frames whose only difference from what it
-would render is the albedo revision, and :mod:`kpcn.report` does it for its cached renders.
+would render is these revisions, and :mod:`kpcn.report` does it for its cached renders.
 """
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
-from ..integrator import ALBEDO_REVISION
+from ..integrator import ALBEDO_REVISION, NORMAL_REVISION
 from ..io import Frame, read_exr, write_exr
 from .frame import render_frame
 
-__all__ = ["ALBEDO_REVISION", "albedo_revision", "update_albedo"]
+__all__ = ["ALBEDO_REVISION", "NORMAL_REVISION", "albedo_revision", "normal_revision", "outdated_first_hit",
+           "update_first_hit", "update_albedo"]
 
-ALBEDO_LAYERS = ("albedo", "albedoVariance")
+#: the layers each first-hit revision covers
+FIRST_HIT_LAYERS = {"albedo": ("albedo", "albedoVariance"), "normal": ("normal", "normalVariance")}
+_HEADER = {"albedo": ("albedoRevision", ALBEDO_REVISION), "normal": ("normalRevision", NORMAL_REVISION)}
 
 
 def albedo_revision(frame: Frame) -> int:
@@ -33,21 +38,38 @@ def albedo_revision(frame: Frame) -> int:
     return int(frame.meta.get("albedoRevision", 1))
 
 
-def update_albedo(path: str | os.PathLike, scene: Any, spp: int, seed: int, *, role: int,
-                  resolution: tuple[int, int] | None = None, pass_spp: int = 256, loaded=None,
-                  meta: Mapping[str, Any] | None = None) -> Frame:
-    """Re-render the albedo layers of the frame at ``path`` (rendered from ``scene`` with ``spp``,
-    ``seed``, ``role``, ``resolution`` and ``pass_spp``, as :func:`kpcn.render.render_frame` takes them)
-    and rewrite the file with every other layer as it was. ``meta``: header attributes to set as well
-    (e.g. an updated render record). Returns the updated frame."""
-    old = read_exr(path, require=ALBEDO_LAYERS)
+def normal_revision(frame: Frame) -> int:
+    """The normal revision a kpcn-rendered frame was written with (1: before the header recorded it)."""
+    return int(frame.meta.get("normalRevision", 1))
+
+
+def outdated_first_hit(frame: Frame) -> list[str]:
+    """Which of ``"albedo"``, ``"normal"`` the frame holds at an older revision than the integrator writes."""
+    return [k for k, (key, rev) in _HEADER.items() if int(frame.meta.get(key, 1)) != rev]
+
+
+def update_first_hit(path: str | os.PathLike, scene: Any, spp: int, seed: int, *, role: int,
+                     which: Iterable[str] = ("albedo", "normal"), resolution: tuple[int, int] | None = None,
+                     pass_spp: int = 256, loaded=None, meta: Mapping[str, Any] | None = None) -> Frame:
+    """Re-render the first-hit layers ``which`` (``"albedo"``, ``"normal"``) of the frame at ``path``
+    (rendered from ``scene`` with ``spp``, ``seed``, ``role``, ``resolution`` and ``pass_spp``, as
+    :func:`kpcn.render.render_frame` takes them) and rewrite the file with every other layer as it was.
+    ``meta``: header attributes to set as well (e.g. an updated render record). Returns the updated frame."""
+    which = [w for w in FIRST_HIT_LAYERS if w in set(which)]
+    names = [n for w in which for n in FIRST_HIT_LAYERS[w]]
+    old = read_exr(path, require=names)
     new = render_frame(scene, spp, seed, resolution, role=role, pass_spp=pass_spp, loaded=loaded, albedo_only=True)
     if new.shape != old.shape:
         raise ValueError(f"{path}: the frame is {old.shape[1]}x{old.shape[0]} but the scene renders "
                          f"{new.shape[1]}x{new.shape[0]}; not the frame's scene or resolution")
     layers = dict(old.layers)
-    for name in ALBEDO_LAYERS:
+    for name in names:
         layers[name] = new[name]
-    header = {**old.meta, **(meta or {}), "albedoRevision": ALBEDO_REVISION}
+    header = {**old.meta, **(meta or {}), **{_HEADER[w][0]: _HEADER[w][1] for w in which}}
     write_exr(path, layers, header)
     return Frame(layers, header, os.fspath(path), dict(old.nonfinite))
+
+
+def update_albedo(path: str | os.PathLike, scene: Any, spp: int, seed: int, **kw) -> Frame:
+    """:func:`update_first_hit` of the albedo layers alone."""
+    return update_first_hit(path, scene, spp, seed, which=("albedo",), **kw)

@@ -24,9 +24,9 @@ from . import manifest as mf
 from .frame import render_to_exr
 from .manifest import DatasetError, DatasetStatus, dataset_status
 from .cycles_scene import GENERATED, generated_variant, is_generated
-from ..integrator import ALBEDO_REVISION
-from .albedo import update_albedo
-from .record import HEADER_KEY, frame_record, only_albedo_differs, scene_identity, stale_reason
+from ..integrator import ALBEDO_REVISION, NORMAL_REVISION
+from .albedo import update_first_hit
+from .record import HEADER_KEY, first_hit_differences, frame_record, scene_identity, stale_reason
 from .scene import load_scene
 
 log = logging.getLogger("kpcn.render")
@@ -182,17 +182,19 @@ def render_dataset(
         for role, s, path, noise_role in jobs:
             rec = frame_record(role=role, spp=s, seed=seed, noise_role=noise_role, resolution=resolution,
                                max_depth=MAX_DEPTH, pass_spp=PASS_SPP, source=source, fingerprint=fingerprint,
-                               albedo=None if is_generated(sc) else ALBEDO_REVISION)
+                               albedo=None if is_generated(sc) else ALBEDO_REVISION,
+                               normal=None if is_generated(sc) else NORMAL_REVISION)
             reason = stale_reason(path, rec)
             if reason is not None:
                 if not changing:
                     save()
                     changing = True
-                if only_albedo_differs(path, rec):  # the albedo layers alone, at a fraction of a render's cost
-                    log.info("updating the albedo of %s: %s", path, reason)
+                first_hit = first_hit_differences(path, rec)
+                if first_hit:  # the albedo or normal layers alone, at a fraction of a render's cost
+                    log.info("updating the %s of %s: %s", " and ".join(first_hit), path, reason)
                     loaded = loaded or load_scene(to_render, resolution)
-                    update_albedo(path, to_render, s, seed, role=noise_role, resolution=resolution, pass_spp=PASS_SPP,
-                                  loaded=loaded, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
+                    update_first_hit(path, to_render, s, seed, role=noise_role, which=first_hit, resolution=resolution,
+                                     pass_spp=PASS_SPP, loaded=loaded, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
                     entry["frames"][path.relative_to(out).as_posix()] = rec
                     continue
                 if reason != "missing":

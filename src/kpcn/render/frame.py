@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..integrator import ALBEDO_REVISION, MOMENT2, aov_layout
+from ..integrator import ALBEDO_REVISION, MOMENT2, NORMAL_REVISION, aov_layout
 from ..io import Frame, write_exr
 from .scene import ensure_variant, load_scene
 
@@ -59,7 +59,8 @@ def render_frame(
         Frame with ``color``, ``diffuse``, ``specular``, ``albedo``, ``normal``,
         ``depth`` and ``<layer>Variance`` (variance of the pixel mean), and meta
         ``spp``, ``renderTimeSeconds`` (wall time of the passes), ``seed``, ``scene`` and
-        ``albedoRevision`` (:data:`kpcn.integrator.ALBEDO_REVISION`).
+        ``albedoRevision`` and ``normalRevision`` (:data:`kpcn.integrator.ALBEDO_REVISION`,
+        :data:`kpcn.integrator.NORMAL_REVISION`).
     """
     if spp < 2:
         raise ValueError(f"spp must be >= 2 to estimate variances, got {spp}")
@@ -95,7 +96,7 @@ def render_frame(
         var = (raw[f"{layer}_m2"] - raw[layer] ** 2) / (spp - 1)
         layers[f"{layer}Variance"] = np.maximum(var, 0.0).astype(np.float32)
     meta = {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name),
-            "albedoRevision": ALBEDO_REVISION}
+            "albedoRevision": ALBEDO_REVISION, "normalRevision": NORMAL_REVISION}
     return Frame(layers, meta)
 
 

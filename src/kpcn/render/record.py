@@ -30,6 +30,8 @@ import numpy as np
 
 HEADER_KEY = "kpcnRecord"
 RECORD_VERSION = 1
+#: the record keys of the layers a first-hit pass re-renders (:mod:`kpcn.render.albedo`)
+FIRST_HIT = ("albedo", "normal")
 
 
 # ----------------------------------------------------------------------------- scene fingerprints
@@ -123,14 +125,18 @@ def scene_identity(scene: Any, resolution: tuple[int, int]) -> tuple[str, str, A
 
 
 def frame_record(*, role: str, spp: int, seed: int, noise_role: int, resolution, max_depth: int,
-                 pass_spp: int, source: str, fingerprint: str, albedo: int | None = None) -> dict:
-    """A frame's render record; ``albedo``: the integrator's albedo revision (Mitsuba frames; a record
-    written before revision 2 has none)."""
+                 pass_spp: int, source: str, fingerprint: str, albedo: int | None = None,
+                 normal: int | None = None) -> dict:
+    """A frame's render record; ``albedo`` and ``normal``: the integrator's albedo and normal revisions
+    (Mitsuba frames; a record written before albedo revision 2 has neither, one before normal revision 2
+    no ``normal``)."""
     rec = {"record": RECORD_VERSION, "role": role, "spp": int(spp), "seed": int(seed), "noise_role": int(noise_role),
            "resolution": [int(v) for v in resolution], "max_depth": int(max_depth), "pass_spp": int(pass_spp),
            "source": str(source), "fingerprint": str(fingerprint)}
     if albedo is not None:
         rec["albedo"] = int(albedo)
+    if normal is not None:
+        rec["normal"] = int(normal)
     return rec
 
 
@@ -162,23 +168,27 @@ def _show(key: str, v) -> str:
 
 def _differences(have: dict, size, want: dict) -> dict:
     """``{key: the record's value}`` for each key of ``want`` the record ``have`` differs in (a record before
-    albedo revision 2 has no ``albedo`` key: revision 1), then ``"size": size`` if the frame's ``(width, height)``
-    is not ``want``'s resolution."""
-    have = {"albedo": 1, **have} if "albedo" in want else have
+    albedo revision 2 has no ``albedo`` key, one before normal revision 2 no ``normal``: revision 1), then
+    ``"size": size`` if the frame's ``(width, height)`` is not ``want``'s resolution."""
+    have = {**{k: 1 for k in FIRST_HIT if k in want}, **have}
     diff = {k: have.get(k) for k in want if have.get(k) != want[k]}
     if list(size) != list(want["resolution"]):
         diff["size"] = size
     return diff
 
 
-def only_albedo_differs(path: Path, want: dict) -> bool:
-    """The frame at ``path`` differs from the record ``want`` in its albedo revision alone (it can be brought
-    up to date by :func:`kpcn.render.albedo.update_albedo` rather than rendered again)."""
+def first_hit_differences(path: Path, want: dict) -> list[str]:
+    """The first-hit layers (``"albedo"``, ``"normal"``) whose revision alone makes the frame at ``path``
+    differ from the record ``want`` (it can be brought up to date by
+    :func:`kpcn.render.albedo.update_first_hit` rather than rendered again); [] when anything else differs."""
     try:
         have, size = read_record(path)
     except Exception:
-        return False
-    return have is not None and list(_differences(have, size, want)) == ["albedo"]
+        return []
+    if have is None:
+        return []
+    diff = list(_differences(have, size, want))
+    return diff if diff and set(diff) <= set(FIRST_HIT) else []
 
 
 def stale_reason(path: Path, want: dict) -> str | None:

@@ -123,12 +123,12 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
 
     Cache: ``<out>/<name>/renders/<scene>/<W>x<H>-<fingerprint>/input_<spp>spp_seed<seed>.exr``,
     ``converged_<spp>spp_seed<seed>.exr`` and ``reference_<spp>spp_seed<seed>.exr``; a cached
-    file is used when its header's spp and its size match; one rendered before the current albedo revision
-    gets its albedo layers rendered again (:mod:`kpcn.render.albedo`). Inputs, the converged input and the
+    file is used when its header's spp and its size match; one rendered before the current albedo or normal
+    revision gets those layers rendered again (:mod:`kpcn.render.albedo`). Inputs, the converged input and the
     reference have independent noise (render roles ``2 + spp``, :data:`CONVERGED_ROLE`, 1).
     """
     from ..render import load_scene, render_frame
-    from ..render.albedo import ALBEDO_REVISION, albedo_revision, update_albedo
+    from ..render.albedo import outdated_first_hit, update_first_hit
 
     w, h = cfg.resolution
     source, fingerprint = scene_source(scene, tuple(cfg.resolution))
@@ -143,12 +143,14 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
     loaded = for_albedo = None
     for spp, path, role in jobs:
         fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
-        if fr is not None and not is_cycles(scene) and albedo_revision(fr) != ALBEDO_REVISION:
-            # rendered before the albedo's revision: its albedo layers alone are rendered again
+        outdated = [] if fr is None or is_cycles(scene) else outdated_first_hit(fr)
+        if outdated:
+            # rendered before the albedo's or the normal's revision: those layers alone are rendered again
             # (a scene of its own: `loaded` set here would skip the timed renders' warm-up below)
             for_albedo = for_albedo or load_scene(source, cfg.resolution)
-            fr = update_albedo(path, source, spp, cfg.seed, role=role, resolution=cfg.resolution, loaded=for_albedo)
-            progress(f"updated the albedo of {scene_label(scene)} {spp} spp (revision {ALBEDO_REVISION})")
+            fr = update_first_hit(path, source, spp, cfg.seed, role=role, which=outdated, resolution=cfg.resolution,
+                                  loaded=for_albedo)
+            progress(f"updated the {' and '.join(outdated)} of {scene_label(scene)} {spp} spp (latest revision)")
         if fr is None and is_cycles(scene):  # Blender: one child process per render; Cycles times itself
             from ..render.cycles import render_cycles
 
