@@ -337,3 +337,38 @@ def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
     assert r.stderr.count("re-render") == 2
     assert all(read_exr(p).shape == (12, 12) for p in frame_files(tmp_path / "ds"))
     assert np.isfinite(read_exr(tmp_path / "ds" / "random_0" / "reference.exr")["color"]).all()
+
+
+def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, monkeypatch, caplog):
+    """A data set rendered before normal revision 2 (the unmapped normal): training names the command that updates
+    it, which re-renders the normal layers alone, as a fresh render writes them; every other layer stays bit for bit."""
+    from kpcn.render.record import HEADER_KEY, read_record
+    from kpcn.train_data import warn_outdated_albedo
+
+    root = tmp_path / "data"
+    render_dataset(root, 1, **{**SMALL, "first_seed": 5})
+    files = frame_files(root)
+    fresh = {p: read_exr(p) for p in files}
+    for p, f in fresh.items():  # as normal revision 1 wrote them: no normal in the record or header, another normal
+        rec = read_record(p)[0]
+        del rec["normal"]
+        meta = {k: v for k, v in f.meta.items() if k in ("spp", "renderTimeSeconds", "seed", "scene", "albedoRevision")}
+        write_exr(p, {**f.layers, "normal": np.broadcast_to([0, 1, 0], f["normal"].shape).astype(np.float32)},
+                  {**meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
+    m = json.loads((root / "manifest.json").read_text())
+    for rec in m["scenes"][0]["frames"].values():
+        del rec["normal"]
+    (root / "manifest.json").write_text(json.dumps(m))
+    with caplog.at_level(logging.WARNING, logger="kpcn.train"):
+        assert warn_outdated_albedo([root]) == 2
+    assert any("2 of 2 frames have normal revision 1" in r.getMessage() for r in caplog.records)
+    calls = counting_render(monkeypatch)
+    with caplog.at_level(logging.INFO, logger="kpcn.render"):
+        render_dataset(root, 1, **{**SMALL, "first_seed": 5})
+    assert calls == [] and warn_outdated_albedo([root]) == 0  # no frame rendered in full
+    assert sum("updating the normal of" in r.getMessage() for r in caplog.records) == len(files) == 2
+    for p, f in fresh.items():
+        g = read_exr(p)
+        assert g.meta["normalRevision"] == 2 and read_record(p)[0]["normal"] == 2
+        for name in ("normal", "normalVariance", "albedo", "color", "colorVariance", "diffuse", "specular", "depth"):
+            assert np.array_equal(g[name], f[name]), (p.name, name)
