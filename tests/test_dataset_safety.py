@@ -187,27 +187,38 @@ def test_only_frames_whose_record_differs_are_rerendered(mi, tmp_path, monkeypat
     assert [c[1] for c in calls] == [str(inp)]
 
 
+def as_older_revision(root, key, value):
+    """Rewrite every frame of the data set at ``root`` (and its manifest) as revision 1 of the ``key`` layer
+    (``"albedo"`` or ``"normal"``) wrote it: no ``key`` in the records, no ``<key>Revision`` in the headers, the
+    layer replaced by ``value(frame)``. Returns ``{path: the frame as it was}``."""
+    from kpcn.render.record import HEADER_KEY, read_record
+
+    fresh = {p: read_exr(p) for p in frame_files(root)}
+    for p, f in fresh.items():
+        rec = read_record(p)[0]
+        del rec[key]
+        meta = {k: v for k, v in f.meta.items() if k in ("spp", "renderTimeSeconds", "seed", "scene",
+                                                           "albedoRevision", "normalRevision")}
+        del meta[f"{key}Revision"]
+        write_exr(p, {**f.layers, key: value(f)}, {**meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
+    # the manifest's records too; training names the command that updates them
+    m = json.loads((root / "manifest.json").read_text())
+    for rec in m["scenes"][0]["frames"].values():
+        del rec[key]
+    (root / "manifest.json").write_text(json.dumps(m))
+    return fresh
+
+
 def test_frames_of_an_older_albedo_revision_get_their_albedo_only(mi, tmp_path, monkeypatch, caplog):
     """A data set rendered before albedo revision 2: its frames keep their radiance bit for bit, their albedo
     layers become what a fresh render writes, without a full render of any frame."""
-    from kpcn.render.record import HEADER_KEY, read_record
+    from kpcn.render.record import read_record
+    from kpcn.train_data import warn_outdated_albedo
 
     root = tmp_path / "data"
     render_dataset(root, 1, **{**SMALL, "first_seed": 3})
     files = frame_files(root)
-    fresh = {p: read_exr(p) for p in files}
-    for p, f in fresh.items():  # as revision 1 wrote them: no albedo in the record or header, another albedo
-        rec = read_record(p)[0]
-        del rec["albedo"]
-        write_exr(p, {**f.layers, "albedo": f["albedo"] * 7 + 0.5},
-                  {**{k: f.meta[k] for k in ("spp", "renderTimeSeconds", "seed", "scene")},
-                   HEADER_KEY: json.dumps(rec, sort_keys=True)})
-    # rewrite the manifest's records too, as revision 1 wrote them; training names the command that updates them
-    m = json.loads((root / "manifest.json").read_text())
-    for rec in m["scenes"][0]["frames"].values():
-        del rec["albedo"]
-    (root / "manifest.json").write_text(json.dumps(m))
-    from kpcn.train_data import warn_outdated_albedo
+    fresh = as_older_revision(root, "albedo", lambda f: f["albedo"] * 7 + 0.5)
 
     with caplog.at_level(logging.WARNING, logger="kpcn.train"):
         assert warn_outdated_albedo([root]) == 2
@@ -342,23 +353,14 @@ def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
 def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, monkeypatch, caplog):
     """A data set rendered before normal revision 2 (the unmapped normal): training names the command that updates
     it, which re-renders the normal layers alone, as a fresh render writes them; every other layer stays bit for bit."""
-    from kpcn.render.record import HEADER_KEY, read_record
+    from kpcn.render.record import read_record
     from kpcn.train_data import warn_outdated_albedo
 
     root = tmp_path / "data"
     render_dataset(root, 1, **{**SMALL, "first_seed": 5})
     files = frame_files(root)
-    fresh = {p: read_exr(p) for p in files}
-    for p, f in fresh.items():  # as normal revision 1 wrote them: no normal in the record or header, another normal
-        rec = read_record(p)[0]
-        del rec["normal"]
-        meta = {k: v for k, v in f.meta.items() if k in ("spp", "renderTimeSeconds", "seed", "scene", "albedoRevision")}
-        write_exr(p, {**f.layers, "normal": np.broadcast_to([0, 1, 0], f["normal"].shape).astype(np.float32)},
-                  {**meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
-    m = json.loads((root / "manifest.json").read_text())
-    for rec in m["scenes"][0]["frames"].values():
-        del rec["normal"]
-    (root / "manifest.json").write_text(json.dumps(m))
+    fresh = as_older_revision(root, "normal",
+                              lambda f: np.broadcast_to([0, 1, 0], f["normal"].shape).astype(np.float32))
     with caplog.at_level(logging.WARNING, logger="kpcn.train"):
         assert warn_outdated_albedo([root]) == 2
     assert any("2 of 2 frames have normal revision 1" in r.getMessage() for r in caplog.records)

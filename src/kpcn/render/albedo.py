@@ -25,26 +25,16 @@ from ..integrator import ALBEDO_REVISION, NORMAL_REVISION
 from ..io import Frame, read_exr, write_exr
 from .frame import render_frame
 
-__all__ = ["ALBEDO_REVISION", "NORMAL_REVISION", "albedo_revision", "normal_revision", "outdated_first_hit",
-           "update_first_hit", "update_albedo"]
+__all__ = ["ALBEDO_REVISION", "NORMAL_REVISION", "outdated_first_hit", "update_first_hit"]
 
 #: the layers each first-hit revision covers
 FIRST_HIT_LAYERS = {"albedo": ("albedo", "albedoVariance"), "normal": ("normal", "normalVariance")}
 _HEADER = {"albedo": ("albedoRevision", ALBEDO_REVISION), "normal": ("normalRevision", NORMAL_REVISION)}
 
 
-def albedo_revision(frame: Frame) -> int:
-    """The albedo revision a kpcn-rendered frame was written with (1: before the header recorded it)."""
-    return int(frame.meta.get("albedoRevision", 1))
-
-
-def normal_revision(frame: Frame) -> int:
-    """The normal revision a kpcn-rendered frame was written with (1: before the header recorded it)."""
-    return int(frame.meta.get("normalRevision", 1))
-
-
 def outdated_first_hit(frame: Frame) -> list[str]:
-    """Which of ``"albedo"``, ``"normal"`` the frame holds at an older revision than the integrator writes."""
+    """Which of ``"albedo"``, ``"normal"`` the frame holds at an older revision than the integrator writes (a
+    header without the revision's key: revision 1)."""
     return [k for k, (key, rev) in _HEADER.items() if int(frame.meta.get(key, 1)) != rev]
 
 
@@ -68,8 +58,3 @@ def update_first_hit(path: str | os.PathLike, scene: Any, spp: int, seed: int, *
     header = {**old.meta, **(meta or {}), **{_HEADER[w][0]: _HEADER[w][1] for w in which}}
     write_exr(path, layers, header)
     return Frame(layers, header, os.fspath(path), dict(old.nonfinite))
-
-
-def update_albedo(path: str | os.PathLike, scene: Any, spp: int, seed: int, **kw) -> Frame:
-    """:func:`update_first_hit` of the albedo layers alone."""
-    return update_first_hit(path, scene, spp, seed, which=("albedo",), **kw)
