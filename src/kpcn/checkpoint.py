@@ -222,15 +222,17 @@ def load_train_state(path: str | os.PathLike, trust_pickle: bool = False, map_lo
 # ----------------------------------------------------------------------------- any model file
 
 
-def load_model_file(path: str | os.PathLike, trust_pickle: bool = False) -> nn.Module:
+def load_model_file(path: str | os.PathLike, trust_pickle: bool = False, config: Mapping | None = None) -> nn.Module:
     """The model in ``path``: a ``.safetensors`` weights file, or a training state / older checkpoint.
 
-    Pickle-based files load with ``weights_only=True`` unless ``trust_pickle``.
+    Pickle-based files load with ``weights_only=True`` unless ``trust_pickle``. ``config``: config fields set over
+    the file's hyper-parameters (a registered tag's, :class:`~kpcn.models.WeightsEntry`).
     """
     path = Path(path)
+    over = dict(config or {})
     if path.suffix == ".safetensors":
         record, state = read_weights(path)
-        return model_from_record(record["model"], record["hparams"], state, str(path))
+        return model_from_record(record["model"], _with(record["hparams"], over), state, str(path))
     ckpt = _torch_load(path, trust_pickle)
     if not isinstance(ckpt, Mapping) or "model" not in ckpt:
         found = sorted(ckpt) if isinstance(ckpt, Mapping) else type(ckpt).__name__
@@ -240,7 +242,12 @@ def load_model_file(path: str | os.PathLike, trust_pickle: bool = False) -> nn.M
     if name is None or hparams is None:
         raise CheckpointError(f"{path}: not a kpcn checkpoint: it lacks the model name and hyper-parameters "
                               f"(found keys {sorted(ckpt)})")
-    return model_from_record(name, hparams, ckpt["model"], str(path))
+    return model_from_record(name, _with(hparams, over), ckpt["model"], str(path))
+
+
+def _with(hparams, over: dict):
+    """``hparams`` with ``over`` set on it (a malformed ``hparams`` is left for :func:`model_from_record` to name)."""
+    return {**hparams, **over} if over and isinstance(hparams, Mapping) else hparams
 
 
 def weights_sha256(state_dict: Mapping[str, torch.Tensor]) -> str:

@@ -44,6 +44,7 @@ import torch
 from ..features import frame_to_tensors
 from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
+from .detail import refine_detail
 from .paths import check_not_input, check_output_path
 from .heap import reuse_heap
 from .precision import compute_dtype, resolve_precision
@@ -258,6 +259,12 @@ def denoise_result(
                     aov_out[name][t.interior] = v[0, :, iy, ix].float().permute(1, 2, 0).cpu().numpy()
             stats.tiles_run += 1
             del inputs, res
+        detail = net.detail_regression
+        if detail is not None and stats.tiles_run:  # after the network, on the assembled frame (tiled == untiled)
+            groups = {p.name: aov_out[p.name] for p in plans if p.group}  # parts of the beauty: they keep adding up
+            out, refined = refine_detail(out, color_in, frame["normal"], *detail, layers=groups)
+            aov_out.update(refined)
+            stats.detail_radius = detail[0]
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         stats.peak_cuda_mb = torch.cuda.max_memory_allocated(dev) / 2**20

@@ -34,6 +34,8 @@ class DenoiseStats:
             :mod:`kpcn.inference.precision`).
         row_bands: the whole frame was run a band of rows at a time (:mod:`kpcn.inference.rows`), in
             this many bands; 0: it was not.
+        detail_radius: the radius of the normal-guided detail stage run after the network
+            (:mod:`kpcn.inference.detail`); 0: none was run.
     """
 
     seconds: float = 0.0
@@ -59,6 +61,7 @@ class DenoiseStats:
     nonfinite: dict[str, int] = field(default_factory=dict)
     noise_precision: float | None = None
     row_bands: int = 0
+    detail_radius: int = 0
 
     def summary(self) -> str:
         h, w = self.size

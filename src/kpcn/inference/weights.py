@@ -32,7 +32,7 @@ __all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_
            "resolve_weights", "resolve_device", "describe"]
 
 #: the model ``denoise(path)`` uses when none is given (its default shipped weights)
-DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:wide64h (configs/unet_wide64h.yaml)
+DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:wide64r (wide64h's file, configs/unet_wide64h.yaml, + the detail stage)
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
 DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",
@@ -81,11 +81,21 @@ def resolve_weights(model=None) -> Path:
     )
 
 
+def _registered_config(model) -> tuple:
+    """The config fields a registered ``"name:tag"`` sets over its file's (``()`` for a path or a bare file)."""
+    text = os.fspath(model)
+    if Path(text).is_file():
+        return ()
+    name, _, tag = text.partition(":")
+    return weights_entry(name, tag or None).config if is_model(name) else ()
+
+
 @functools.lru_cache(maxsize=8)
-def _load_cached(path: str, mtime_ns: int, size: int, device: str, trust_pickle: bool) -> nn.Module:
-    model = load_model_file(path, trust_pickle=trust_pickle)
+def _load_cached(path: str, mtime_ns: int, size: int, device: str, trust_pickle: bool, config: tuple = ()) -> nn.Module:
+    model = load_model_file(path, trust_pickle=trust_pickle, config=dict(config))
     model.eval().requires_grad_(False)
     model._kpcn_source = path  # for the output's metadata
+    model._kpcn_config = config
     return model.to(device)
 
 
@@ -103,8 +113,9 @@ def load_model(model=None, device: str | torch.device = "auto", trust_pickle: bo
             raise TypeError(f"denoise: model must be a kpcn DenoiserModel (see kpcn.models), got {type(model).__name__}")
         return model.to(dev).eval()
     path = resolve_weights(model)
+    config = _registered_config(DEFAULT_MODEL if model is None else model)
     st = path.stat()
-    return _load_cached(str(path.resolve()), st.st_mtime_ns, st.st_size, str(dev), bool(trust_pickle))
+    return _load_cached(str(path.resolve()), st.st_mtime_ns, st.st_size, str(dev), bool(trust_pickle), config)
 
 
 def choose_default(layers) -> tuple[str, str | None]:
@@ -130,4 +141,5 @@ def choose_default(layers) -> tuple[str, str | None]:
 def describe(model: nn.Module) -> str:
     src = getattr(model, "_kpcn_source", None)
     name = getattr(model, "name", "") or type(model).__name__
-    return f"{name} ({Path(src).name})" if src else f"{name} (in-memory)"
+    over = "".join(f", {k}={v}" for k, v in getattr(model, "_kpcn_config", ()))
+    return f"{name} ({Path(src).name}{over})" if src else f"{name} (in-memory)"

@@ -27,6 +27,9 @@ model is only what it declares here:
   neighbourhood, padded as ``kernel_padding`` says, so it lies in that
   neighbourhood's per-channel range (single-scale kernel predictors; not a
   multi-scale reconstruction, which adds coarse-minus-fine corrections).
+* ``detail_regression`` — ``(radius, eps)`` or None: the inference pipeline refines the assembled colour with the
+  frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further) after
+  the network, outside ``forward``; a stage without weights, so training never sees it.
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
@@ -67,6 +70,13 @@ class DenoiserModel(nn.Module):
     #: dtypes the model's hidden layers can run in (:meth:`set_compute_dtype`); kernels, their softmax and
     #: their application stay float32 whatever the compute dtype
     compute_dtypes: tuple[torch.dtype, ...] = (torch.float32,)
+
+    @property
+    def detail_regression(self) -> tuple[int, float] | None:
+        """``(radius, eps)`` of the normal-guided residual regression the pipeline applies after the network
+        (config fields ``detail_radius`` > 0 and ``detail_eps``), or None."""
+        radius = int(getattr(self.config, "detail_radius", 0) or 0)
+        return (radius, float(self.config.detail_eps)) if radius > 0 else None
 
     def __init__(self, config: Any) -> None:
         super().__init__()

@@ -52,12 +52,15 @@ class _Entry:
 
 @dataclass(frozen=True)
 class WeightsEntry:
-    """Shipped weights of a model: ``path`` (a weights-only file) and a description."""
+    """Shipped weights of a model: ``path`` (a weights-only file), a description, and ``config``: fields of the
+    model's config that the tag sets over the file's own (stages without weights, such as the U-Net's
+    ``detail_radius``), as ``((key, value), ...)``."""
 
     model: str
     tag: str
     path: Path
     description: str = ""
+    config: tuple = ()
 
 
 _MODELS: dict[str, _Entry] = {}
@@ -88,9 +91,23 @@ def register_model(name: str, config: type | None = None) -> Callable:
     return decorator
 
 
-def register_weights(model: str, tag: str, filename: str, description: str = "", default: bool = False) -> None:
-    """Register a shipped weights file (in :data:`WEIGHTS_DIR`) for ``model`` under ``tag``."""
-    entry = WeightsEntry(model, tag, WEIGHTS_DIR / filename, description)
+def register_weights(model: str, tag: str, filename: str, description: str = "", default: bool = False,
+                     config: dict | None = None) -> None:
+    """Register a shipped weights file (in :data:`WEIGHTS_DIR`) for ``model`` under ``tag``; ``config`` sets
+    fields of the model's config over the file's (fields that add or remove no parameter: two tags can share a
+    file, as timm's pretrained configs share weights with different inference settings).
+
+    Raises:
+        ValueError: ``config`` names a field the model's config does not have.
+    """
+    entry_model = _MODELS.get(model)
+    if config and entry_model is not None and entry_model.config is not None:
+        known = {f.name for f in dataclasses.fields(entry_model.config)}
+        unknown = sorted(set(config) - known)
+        if unknown:
+            raise ValueError(f"register_weights({model}:{tag}): config fields {unknown} are not fields of "
+                             f"{entry_model.config.__name__}")
+    entry = WeightsEntry(model, tag, WEIGHTS_DIR / filename, description, tuple(sorted((config or {}).items())))
     _WEIGHTS.setdefault(model, {})[tag] = entry
     if default or model not in _DEFAULT_WEIGHTS:
         _DEFAULT_WEIGHTS[model] = tag

@@ -206,7 +206,7 @@ register_weights("unet_kpcn", "wide64c", "unet_wide64c.safetensors",
                              "so the specular 1/4 and 1/8 kernel levels were never used) and its colour pooled to the "
                              "coarse levels as radiance (radiance_pool), trained 3000 steps of batch 16 on the CPU "
                              "(configs/unet_wide64c.yaml) with 268 fresh scenes at 2-8 spp")
-register_weights("unet_kpcn", "wide64h", "unet_wide64h.safetensors", default=True,
+register_weights("unet_kpcn", "wide64h", "unet_wide64h.safetensors",
                  description="unet_kpcn:wide64c (the same network, 98 k multiply-adds per pixel) trained about 2800 "
                              "steps of batch 32 of 128² on one GPU on 85 procedural 256x256 scenes rendered there "
                              "(2-512 spp, 2048-spp references; log_msssim with tone_l2_weight 100), then blended "
@@ -217,3 +217,10 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
+register_weights("unet_kpcn", "wide64r", "unet_wide64h.safetensors", default=True,
+                 config={"detail_radius": 6, "detail_eps": 0.01},
+                 description="unet_kpcn:wide64h's weights (the same network, 98 k multiply-adds per pixel) with the "
+                             "detail stage after it (detail_radius 6, detail_eps 0.01; kpcn.inference.detail): the "
+                             "part of the colour's log residual that the normal explains in each 14x14 window is added "
+                             "back, no channel moved further than its noisy value (the shading of "
+                             "bump-mapped surfaces); settings chosen on validation scenes random:920001-920018")

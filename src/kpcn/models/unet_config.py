@@ -81,6 +81,13 @@ class UNetConfig:
             the kernel applied to the radiance (unbiased). Each ``γ`` starts near 0 (bias
             :data:`RADIANCE_MIX_INIT`), so ``train.init_extend`` from a file without it starts close to its output.
             A constant stays constant and a zero branch zero (both filters keep them).
+        detail_radius: 0 (off) or ``r > 0``: after the network, :func:`kpcn.inference.denoise` adds back to the
+            assembled colour the part of its log residual ``log1p(noisy) - log1p(denoised)`` that a local linear
+            model of the frame's normal explains in each ``(2r + 1)²`` window, no channel moved further from
+            the denoised value than its noisy value is (:func:`~kpcn.ops.residual_regression`): the shading detail of bump-mapped
+            surfaces that the normal shows and a weighted mean of noisy neighbours blurs. An inference stage with no
+            weights: a shipped file runs with or without it (``register_weights(..., config=...)``).
+        detail_eps: the regression's ridge on the normal's window covariance (> 0): larger keeps less.
     """
 
     input_spec: str = "kpcn_split"
@@ -104,6 +111,8 @@ class UNetConfig:
     specular_widths: list[int] | None = None
     radiance_pool: bool = False
     radiance_mix: bool = False
+    detail_radius: int = 0
+    detail_eps: float = 0.01
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -155,6 +164,12 @@ class UNetConfig:
                 raise ValueError(f"UNetConfig.{key} needs kernel_scales >= 2 and an input spec with a log1p-encoded "
                                  f"branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
                                  f"(log_branches {spec.log_branches})")
+        if isinstance(self.detail_radius, bool) or self.detail_radius < 0 or not self.detail_eps > 0:
+            raise ValueError(f"UNetConfig.detail_radius must be >= 0 and detail_eps > 0, got {self.detail_radius!r} "
+                             f"and {self.detail_eps!r}")
+        if self.detail_radius and "normal" not in spec.layers:
+            raise ValueError(f"UNetConfig.detail_radius needs an input spec that reads the normal; {spec.name!r} reads "
+                             f"{spec.layers}")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
