@@ -8,11 +8,10 @@ window, the denoised colour's log residual on the normal and adds back the fitte
 (:func:`~kpcn.ops.residual_regression`), no channel moved further from the denoised value than its noisy value.
 
 It runs on the assembled frame a band of rows at a time (:func:`~kpcn.ops.residual_regression_rows`), so a tiled
-or row-streamed run gives the same result as a whole-frame one, in about 100 MB at 1080p; its window statistics
-are taken at every other pixel (``stride 2``: on the validation scenes the same figures as at every pixel, in
-about a third of the time). Denoised light
-groups are scaled by the colour's per-pixel ratio, so they still add up to it; other layers (an AOV filtered with
-a branch's kernels) are left as the kernels made them.
+or row-streamed run gives the same result as a whole-frame one, in about 60 MB more at 1080p, with one fit per 2×2
+block (``stride 2``: on the validation scenes nearly the per-pixel figures, in about a third of the time).
+Denoised light groups are scaled by the colour's per-pixel ratio, so they still add up to it; other layers (an AOV
+filtered with a branch's kernels) are left as the kernels made them.
 """
 from __future__ import annotations
 

@@ -31,8 +31,9 @@ from ..models import DenoiserModel, is_model, list_models, list_weights, weights
 __all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_default", "load_model",
            "resolve_weights", "resolve_device", "describe"]
 
-#: the model ``denoise(path)`` uses when none is given (its default shipped weights)
-DEFAULT_MODEL = "unet_kpcn"  #: its default weights: unet_kpcn:wide64r (wide64h's file, configs/unet_wide64h.yaml, + the detail stage)
+#: the model ``denoise(path)`` uses when none is given, with its default shipped weights: unet_kpcn:wide64r
+#: (wide64h's file, configs/unet_wide64h.yaml, with the detail stage)
+DEFAULT_MODEL = "unet_kpcn"
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
 DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",
