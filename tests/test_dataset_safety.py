@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from kpcn.data import read_manifest
+from kpcn.integrator import ALBEDO_REVISION, NORMAL_REVISION
 from kpcn.io import read_exr, write_exr
 from kpcn.render import dataset as dataset_mod
 from kpcn.render import render_dataset
@@ -231,7 +232,7 @@ def test_frames_of_an_older_albedo_revision_get_their_albedo_only(mi, tmp_path, 
     assert sum("updating the albedo" in r.getMessage() for r in caplog.records) == len(files) == 2
     for p, f in fresh.items():
         g = read_exr(p)
-        assert g.meta["albedoRevision"] == 2 and read_record(p)[0]["albedo"] == 2
+        assert g.meta["albedoRevision"] == ALBEDO_REVISION and read_record(p)[0]["albedo"] == ALBEDO_REVISION
         for name in ("albedo", "albedoVariance", "color", "colorVariance", "diffuse", "specular", "normal", "depth"):
             assert np.array_equal(g[name], f[name]), (p.name, name)
     m = json.loads((root / "manifest.json").read_text())
@@ -352,7 +353,8 @@ def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
 
 def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, monkeypatch, caplog):
     """A data set rendered before normal revision 2 (the unmapped normal): training names the command that updates
-    it, which re-renders the normal layers alone, as a fresh render writes them; every other layer stays bit for bit."""
+    it, which re-renders the normal layers alone, as a fresh render writes them (the current revision); every other
+    layer stays bit for bit."""
     from kpcn.render.record import read_record
     from kpcn.train_data import warn_outdated_albedo
 
@@ -371,6 +373,6 @@ def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, 
     assert sum("updating the normal of" in r.getMessage() for r in caplog.records) == len(files) == 2
     for p, f in fresh.items():
         g = read_exr(p)
-        assert g.meta["normalRevision"] == 2 and read_record(p)[0]["normal"] == 2
+        assert g.meta["normalRevision"] == NORMAL_REVISION and read_record(p)[0]["normal"] == NORMAL_REVISION
         for name in ("normal", "normalVariance", "albedo", "color", "colorVariance", "diffuse", "specular", "depth"):
             assert np.array_equal(g[name], f[name]), (p.name, name)

@@ -38,8 +38,8 @@ from __future__ import annotations
 ALBEDO_REVISION = 2
 #: what the ``normal`` layer holds (the render record's ``normal``): 1 Mitsuba's interpolated shading normal
 #: ``si.sh_frame.n``, blind to bump maps; 2 the normal a ``bumpmap`` BSDF shades with where there is one
-#: (:mod:`kpcn.bump`), as other renderers' normal passes hold it
-NORMAL_REVISION = 2
+#: (:mod:`kpcn.bump`), as other renderers' normal passes hold it; 3 that, and a ``normalmap``'s normal
+NORMAL_REVISION = 3
 
 #: first-moment AOVs (the colour itself is the film's R, G, B)
 MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))

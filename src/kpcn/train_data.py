@@ -71,10 +71,12 @@ def warn_outdated_albedo(roots) -> int:
             log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
                         "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),
                         status.command())
-        old_normal = sum(1 for rec in mitsuba if rec.get("normal", 1) < NORMAL_REVISION)
+        normal_revs = [rec.get("normal", 1) for rec in mitsuba]
+        old_normal = sum(1 for v in normal_revs if v < NORMAL_REVISION)
         if old_normal:
-            log.warning("%s: %d of %d frames have normal revision 1 (blind to bump maps); `%s` rewrites their "
-                        "normal layers only", root, old_normal, len(frames), status.command())
+            blind = "bump and normal maps" if min(normal_revs) < 2 else "normal maps"
+            log.warning("%s: %d of %d frames have normal revision %d (blind to %s); `%s` rewrites their normal "
+                        "layers only", root, old_normal, len(frames), min(normal_revs), blind, status.command())
         total += max(old, old_normal)
     return total
 
