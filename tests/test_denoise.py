@@ -538,3 +538,17 @@ def test_bench_denoise_rounds_take_turns_and_pool_every_call(capsys, tmp_path):
     assert r["median_s"] == statistics.median(r["times_s"])
     assert SUBCOMMANDS["denoise"](["--sizes", "24", "--no-oidn", "--rounds", "0"]) == 2
     assert "--rounds must be >= 1" in capsys.readouterr().err
+
+
+def test_bench_takes_a_bare_model_name_as_its_default_weights():
+    """``--models unet_kpcn`` times the weights ``denoise`` would use (the registered default and its config);
+    a name that is neither a config, a model nor a fallback is refused."""
+    from kpcn.bench.denoise import _bench_model, _denoise_model_spec
+    from kpcn.inference import load_model
+
+    name, kw, origin = _denoise_model_spec("unet_kpcn")
+    tag = weights_entry("unet_kpcn").tag
+    assert (name, kw) == ("unet_kpcn", None) and f"unet_kpcn:{tag}" in origin
+    assert _bench_model(name, kw) is load_model(None, "cpu")
+    with pytest.raises(ValueError, match="unknown model config"):
+        _denoise_model_spec("no_such_model")

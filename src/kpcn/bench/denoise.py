@@ -46,7 +46,8 @@ _DENOISE_FALLBACK_MODELS = {  # used when configs/<name>.yaml cannot be found
 def _denoise_model_spec(name: str) -> tuple[str, dict | None, str]:
     """``(registry name, model kwargs, origin)`` for a config name (``small``), a YAML path, or
     ``registry:key=value,...`` (e.g. ``kpcn:layers=5,width=32,conv_size=5,kernel_size=11``); for shipped
-    weights ``model:tag`` (``unet_kpcn:wide``): ``(name, None, origin)``, timed with those weights."""
+    weights ``model:tag`` (``unet_kpcn:wide``), or a bare model name without a config of that name (``unet_kpcn``:
+    its default weights): ``(name, None, origin)``, timed with those weights."""
     from pathlib import Path
 
     if ":" in name and "=" not in name:
@@ -80,6 +81,11 @@ def _denoise_model_spec(name: str) -> tuple[str, dict | None, str]:
 
             model = dict(load_config(RunConfig, path).model)
             return model.pop("name"), model, str(path)
+    from kpcn.models import is_model, list_weights, weights_entry
+
+    if is_model(name) and list_weights(name):  # a bare model name: its default shipped weights, as denoise takes it
+        entry = weights_entry(name)
+        return name, None, f"shipped weights {entry.path.name} ({name}:{entry.tag}, its default)"
     if name in _DENOISE_FALLBACK_MODELS:
         spec = dict(_DENOISE_FALLBACK_MODELS[name])
         return spec.pop("name"), spec, "built-in fallback"
