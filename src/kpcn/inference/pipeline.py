@@ -261,10 +261,11 @@ def denoise_result(
             del inputs, res
         detail = net.detail_regression
         if detail is not None and stats.tiles_run:  # after the network, on the assembled frame (tiled == untiled)
+            td = time.perf_counter()
             groups = {p.name: aov_out[p.name] for p in plans if p.group}  # parts of the beauty: they keep adding up
             out, refined = refine_detail(out, color_in, frame["normal"], *detail, layers=groups)
             aov_out.update(refined)
-            stats.detail_radius = detail[0]
+            stats.detail_radius, stats.detail_seconds = detail[0], time.perf_counter() - td
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         stats.peak_cuda_mb = torch.cuda.max_memory_allocated(dev) / 2**20

@@ -35,7 +35,7 @@ class DenoiseStats:
         row_bands: the whole frame was run a band of rows at a time (:mod:`kpcn.inference.rows`), in
             this many bands; 0: it was not.
         detail_radius: the radius of the normal-guided detail stage run after the network
-            (:mod:`kpcn.inference.detail`); 0: none was run.
+            (:mod:`kpcn.inference.detail`); 0: none was run. detail_seconds: its wall time (part of ``seconds``).
     """
 
     seconds: float = 0.0
@@ -62,6 +62,7 @@ class DenoiseStats:
     noise_precision: float | None = None
     row_bands: int = 0
     detail_radius: int = 0
+    detail_seconds: float = 0.0
 
     def summary(self) -> str:
         h, w = self.size
@@ -81,6 +82,8 @@ class DenoiseStats:
                 parts.append("ran " + ", ".join(partial))
         if self.noise_precision is not None:
             parts.append(f"noise precision {self.noise_precision:.2f}")
+        if self.detail_radius:
+            parts.append(f"detail stage {self.detail_seconds:.2f} s")
         return ", ".join(parts)
 
 
