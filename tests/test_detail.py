@@ -75,10 +75,10 @@ def test_tiles_and_row_bands_give_the_whole_frame_result(bumpy, monkeypatch):
 def test_a_tag_sets_config_over_its_file():
     """wide64r is wide64h's file with the stage switched on: one file, two configs, each named by describe."""
     r, h = weights_entry("unet_kpcn", "wide64r"), weights_entry("unet_kpcn", "wide64h")
-    assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01}
+    assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
     assert weights_entry("unet_kpcn").tag == "wide64r"
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
-    assert staged.detail_regression == (6, 0.01) and plain.detail_regression is None
+    assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None
     from kpcn.inference import describe
 
     assert "detail_radius=6" in describe(staged) and "detail" not in describe(plain)

@@ -74,6 +74,24 @@ def test_bounded_detail_moves_no_channel_further_than_its_noisy_value():
 
 
 @pytest.mark.parametrize("stride", [1, 2])
+def test_a_clip_keeps_a_firefly_from_steering_the_fit_or_coming_back(stride):
+    """With ``clip`` no pixel's detail exceeds it; a firefly whose residual correlates with the guide brings back
+    less of itself than without the clip, and its neighbours' detail moves less."""
+    denoised, guide, g = _pair(8, 40, 40)
+    logn = torch.log1p(denoised) + 0.2 * guide.sum(1, keepdim=True) + 0.1 * torch.randn(
+        denoised.shape, generator=g, dtype=torch.float64)
+    logn[..., 20, 20] += 5.0  # a firefly
+    noisy = torch.expm1(logn)
+    free = residual_regression(denoised, noisy, guide, radius=3, eps=0.01, stride=stride)
+    clipped = residual_regression(denoised, noisy, guide, radius=3, eps=0.01, stride=stride, clip=0.15)
+    detail = lambda out: torch.log1p(out) - torch.log1p(denoised)  # noqa: E731
+    assert detail(clipped).abs().max() <= 0.15 + 1e-9 < detail(free).abs().max()
+    assert detail(clipped)[..., 20, 20].abs().max() < detail(free)[..., 20, 20].abs().max()
+    with pytest.raises(ValueError, match="clip must be None or > 0"):
+        residual_regression(denoised, noisy, guide, clip=0.0)
+
+
+@pytest.mark.parametrize("stride", [1, 2])
 def test_the_three_channel_cofactor_solve_matches_lu(stride):
     """A fourth guide channel that is zero everywhere changes nothing (the ridge makes its system block-diagonal):
     the 3 x 3 cofactor path gives what the general solve gives with four channels; so does a one-channel guide

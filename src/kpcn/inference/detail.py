@@ -28,20 +28,22 @@ def _t(a: np.ndarray) -> torch.Tensor:
 
 
 def refine_detail(color: np.ndarray, noisy: np.ndarray, normal: np.ndarray, radius: int, eps: float,
-                  layers: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                  clip: float | None = None, layers: dict[str, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The denoised ``color`` with the normal-guided detail of its residual to ``noisy`` added back.
 
     Args:
         color: ``(H, W, 3)`` the network's denoised colour (>= 0).
         noisy: ``(H, W, 3)`` the noisy input colour.
         normal: ``(H, W, 3)`` the frame's first-hit normal (0 where nothing was hit: a flat guide, no change).
-        radius, eps: the regression's window radius and ridge (:func:`~kpcn.ops.residual_regression`).
+        radius, eps, clip: the regression's window radius, ridge and clip (:func:`~kpcn.ops.residual_regression`).
         layers: denoised layers that add up to ``color`` (light groups), scaled by the same per-pixel ratio.
     Returns:
         ``(color, layers)``: new arrays, float32.
     """
     with torch.inference_mode():
-        out = residual_regression_rows(_t(color), _t(noisy), _t(normal), radius=radius, eps=eps, stride=2)
+        out = residual_regression_rows(_t(color), _t(noisy), _t(normal), radius=radius, eps=eps, stride=2,
+                                       clip=clip)
     refined = np.ascontiguousarray(out[0].permute(1, 2, 0).numpy(), dtype=np.float32)
     scaled = {}
     if layers:

@@ -27,7 +27,7 @@ model is only what it declares here:
   neighbourhood, padded as ``kernel_padding`` says, so it lies in that
   neighbourhood's per-channel range (single-scale kernel predictors; not a
   multi-scale reconstruction, which adds coarse-minus-fine corrections).
-* ``detail_regression`` — ``(radius, eps)`` or None: the inference pipeline refines the assembled colour with the
+* ``detail_regression`` — ``(radius, eps, clip)`` or None: the inference pipeline refines the assembled colour with the
   frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further) after
   the network, outside ``forward``; a stage without weights, so training never sees it.
 
@@ -72,11 +72,12 @@ class DenoiserModel(nn.Module):
     compute_dtypes: tuple[torch.dtype, ...] = (torch.float32,)
 
     @property
-    def detail_regression(self) -> tuple[int, float] | None:
-        """``(radius, eps)`` of the normal-guided residual regression the pipeline applies after the network
-        (config fields ``detail_radius`` > 0 and ``detail_eps``), or None."""
+    def detail_regression(self) -> tuple[int, float, float | None] | None:
+        """``(radius, eps, clip)`` of the normal-guided residual regression the pipeline applies after the network
+        (config fields ``detail_radius`` > 0, ``detail_eps`` and ``detail_clip``, 0 for None), or None."""
         radius = int(getattr(self.config, "detail_radius", 0) or 0)
-        return (radius, float(self.config.detail_eps)) if radius > 0 else None
+        clip = float(getattr(self.config, "detail_clip", 0.0) or 0.0) or None
+        return (radius, float(self.config.detail_eps), clip) if radius > 0 else None
 
     def __init__(self, config: Any) -> None:
         super().__init__()

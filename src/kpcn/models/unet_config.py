@@ -88,6 +88,8 @@ class UNetConfig:
             surfaces that the normal shows and a weighted mean of noisy neighbours blurs. An inference stage with no
             weights: a shipped file runs with or without it (``register_weights(..., config=...)``).
         detail_eps: the regression's ridge on the normal's window covariance (> 0): larger keeps less.
+        detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
+            exceeds ``c`` (fireflies neither steer the fit nor come back through it).
     """
 
     input_spec: str = "kpcn_split"
@@ -113,6 +115,7 @@ class UNetConfig:
     radiance_mix: bool = False
     detail_radius: int = 0
     detail_eps: float = 0.01
+    detail_clip: float = 0.0
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
@@ -164,9 +167,10 @@ class UNetConfig:
                 raise ValueError(f"UNetConfig.{key} needs kernel_scales >= 2 and an input spec with a log1p-encoded "
                                  f"branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
                                  f"(log_branches {spec.log_branches})")
-        if isinstance(self.detail_radius, bool) or self.detail_radius < 0 or not self.detail_eps > 0:
-            raise ValueError(f"UNetConfig.detail_radius must be >= 0 and detail_eps > 0, got {self.detail_radius!r} "
-                             f"and {self.detail_eps!r}")
+        if isinstance(self.detail_radius, bool) or self.detail_radius < 0 or not self.detail_eps > 0 \
+                or not self.detail_clip >= 0:
+            raise ValueError(f"UNetConfig.detail_radius and detail_clip must be >= 0 and detail_eps > 0, got "
+                             f"{self.detail_radius!r}, {self.detail_clip!r} and {self.detail_eps!r}")
         if self.detail_radius and "normal" not in spec.layers:
             raise ValueError(f"UNetConfig.detail_radius needs an input spec that reads the normal; {spec.name!r} reads "
                              f"{spec.layers}")
