@@ -62,8 +62,6 @@ def test_normal_mapped_normal_is_the_one_the_bsdf_shades_with(mi):
     """For a diffuse BSDF under a normal map, f(wo) = R/pi * n·wo: three evaluations give the normal the BSDF
     shades with, and kpcn.bump's agrees with it to a fraction of a degree on every hit (the unmapped normal
     is tens of degrees off); the map's texture is an sRGB bitmap, so its own colour handling must be used."""
-    import drjit as dr
-
     from kpcn.bump import find_bump_maps, mapped_normal
 
     rng = np.random.default_rng(4)
