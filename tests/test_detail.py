@@ -84,3 +84,17 @@ def test_a_tag_sets_config_over_its_file():
     assert "detail_radius=6" in describe(staged) and "detail" not in describe(plain)
     with pytest.raises(ValueError, match="detail_radiu"):
         register_weights("unet_kpcn", "bad", "unet_wide64h.safetensors", config={"detail_radiu": 5})
+
+
+def test_a_file_without_variances_gets_the_stage_too(bumpy):
+    """``denoise(path)`` on a split without variance layers picks kpcn:novar_small_r (novar_small's weights with
+    the stage), says so, and on the bump-mapped planes comes closer to the reference than novar_small alone."""
+    from kpcn.io import Frame
+
+    for name, (noisy, ref) in bumpy.items():
+        bare = Frame({k: v for k, v in noisy.layers.items() if not k.endswith("Variance")}, dict(noisy.meta))
+        plain = denoise_result(bare, "kpcn:novar_small", device="cpu").color
+        with pytest.warns(UserWarning, match="kpcn:novar_small_r"):
+            res = denoise_result(bare, None, device="cpu")
+        assert res.stats.detail_radius == 6 and "novar" in res.model_name, name
+        assert relmse(res.color, ref["color"]) < relmse(plain, ref["color"]), name

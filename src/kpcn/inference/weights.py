@@ -36,7 +36,7 @@ __all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_
 DEFAULT_MODEL = "unet_kpcn"
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
-DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small",
+DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small_r",
                    "color_albedo_normal_noise": "kpcn:can_small"}
 
 HOW_TO_GET_WEIGHTS = (

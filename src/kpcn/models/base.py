@@ -49,7 +49,7 @@ from torch import nn
 
 from ..inputs import InputSpec, get_input_spec
 
-__all__ = ["DenoiserModel", "check_inputs"]
+__all__ = ["DenoiserModel", "check_inputs", "check_detail_config"]
 
 
 class DenoiserModel(nn.Module):
@@ -225,3 +225,15 @@ def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:
             raise ValueError(f"{who}: inputs[{name!r}] {tuple(x.shape)} and albedo {tuple(albedo.shape)} "
                              "must agree in batch and spatial size")
     return b, h, w
+
+
+def check_detail_config(cfg, spec, who: str) -> None:
+    """Check a config's detail-stage fields (``detail_radius`` >= 0, ``detail_eps`` > 0, ``detail_clip`` >= 0; a
+    radius > 0 needs an input spec that reads the normal). Raises ``ValueError`` naming ``who`` and the field."""
+    radius, eps, clip = cfg.detail_radius, cfg.detail_eps, cfg.detail_clip
+    if isinstance(radius, bool) or not isinstance(radius, int) or radius < 0 or not eps > 0 or not clip >= 0:
+        raise ValueError(f"{who}.detail_radius (an integer) and detail_clip must be >= 0 and detail_eps > 0, got "
+                         f"{radius!r}, {clip!r} and {eps!r}")
+    if radius and "normal" not in spec.layers:
+        raise ValueError(f"{who}.detail_radius needs an input spec that reads the normal; {spec.name!r} reads "
+                         f"{spec.layers}")

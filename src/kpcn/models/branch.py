@@ -15,6 +15,7 @@ from torch import nn
 
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import PADDING_MODES
+from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
 
 __all__ = ["BranchConfig"]
@@ -61,6 +62,8 @@ class BranchConfig:
             the features (the kernels are still applied to the raw colour), so
             the network sees the same range whether the scene is dim or 1e8
             bright; ``"none"`` feeds the raw features (the paper).
+        detail_radius, detail_eps, detail_clip: the detail stage after the network (KPCN only; 0: off), as
+            :class:`~kpcn.models.UNetConfig`'s.
     """
 
     layers: int = 9
@@ -77,9 +80,13 @@ class BranchConfig:
     input_transform: str = "log"
     precision_gate: bool = False
     demodulate: bool = False
+    detail_radius: int = 0
+    detail_eps: float = 0.01
+    detail_clip: float = 0.0
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
+        check_detail_config(self, spec, "BranchConfig")
         if self.in_channels is None:
             self.in_channels = spec.channels
         if self.in_channels != spec.channels:

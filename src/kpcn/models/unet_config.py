@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from ..inputs import get_input_spec
+from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
 
 __all__ = ["UNetConfig", "RADIANCE_MIX_INIT"]
@@ -167,13 +168,7 @@ class UNetConfig:
                 raise ValueError(f"UNetConfig.{key} needs kernel_scales >= 2 and an input spec with a log1p-encoded "
                                  f"branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
                                  f"(log_branches {spec.log_branches})")
-        if isinstance(self.detail_radius, bool) or self.detail_radius < 0 or not self.detail_eps > 0 \
-                or not self.detail_clip >= 0:
-            raise ValueError(f"UNetConfig.detail_radius and detail_clip must be >= 0 and detail_eps > 0, got "
-                             f"{self.detail_radius!r}, {self.detail_clip!r} and {self.detail_eps!r}")
-        if self.detail_radius and "normal" not in spec.layers:
-            raise ValueError(f"UNetConfig.detail_radius needs an input spec that reads the normal; {spec.name!r} reads "
-                             f"{spec.layers}")
+        check_detail_config(self, spec, "UNetConfig")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:
