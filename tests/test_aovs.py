@@ -90,7 +90,8 @@ def test_aov_requests_that_cannot_work_are_refused(groups):
 
 
 def test_a_file_with_only_colour_albedo_normal_gets_the_shipped_model_for_it(render, tmp_path):
-    """No split, no variances: denoise(path) picks kpcn:can_small, says so, and cuts the error of a noisy render."""
+    """No split, no variances: denoise(path) picks kpcn:can_small_r (can_small with the detail stage), says so, and
+    cuts the error of a noisy render."""
     from kpcn.io import write_exr
     from kpcn.metrics import relmse
 
@@ -98,9 +99,9 @@ def test_a_file_with_only_colour_albedo_normal_gets_the_shipped_model_for_it(ren
     ref = render("test:glossy", spp=512, seed=9, role=1, resolution=(48, 48))
     path = tmp_path / "can.exr"
     write_exr(path, {k: noisy[k] for k in ("color", "albedo", "normal")})
-    with pytest.warns(UserWarning, match="no diffuse/specular split: denoising with kpcn:can_small"):
+    with pytest.warns(UserWarning, match="no diffuse/specular split: denoising with kpcn:can_small_r"):
         res = denoise_result(path, None, device="cpu")
-    assert "kpcn_can_small" in res.model_name
+    assert "kpcn_can_small" in res.model_name and res.stats.detail_radius > 0
     assert relmse(res.color, ref["color"]) < 0.5 * relmse(noisy["color"], ref["color"])
     # a file with the full split still gets the default model, without a warning
     import warnings

@@ -37,7 +37,7 @@ DEFAULT_MODEL = "unet_kpcn"
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)
 DEFAULT_BY_SPEC = {"kpcn_split": DEFAULT_MODEL, "split_novar": "kpcn:novar_small_r",
-                   "color_albedo_normal_noise": "kpcn:can_small"}
+                   "color_albedo_normal_noise": "kpcn:can_small_r"}
 
 HOW_TO_GET_WEIGHTS = (
     "train a model with `python -m kpcn.train --config configs/small.yaml` and pass its weights "

@@ -262,6 +262,12 @@ register_weights("kpcn", "novar_small", "kpcn_novar_small.safetensors",
                  description="KPCN 5x32 on the diffuse/specular split without variances (configs/small_novar.yaml, "
                              "30 procedural scenes), fine-tuned on 32 Blender Cycles scenes "
                              "(configs/small_novar_cycles.yaml, _b, _c, _d)")
+register_weights("kpcn", "can_small_r", "kpcn_can_small.safetensors",
+                 config={"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15},
+                 description="kpcn:can_small's weights with the default U-Net's detail stage after the network "
+                             "(kpcn.inference.detail; its settings, chosen for the U-Net): on the 18 validation scenes "
+                             "+0.1-0.23 dB and +0.003-0.005 SSIM over can_small, every figure better at 2-256 spp; "
+                             "denoise(path)'s model for files with colour, albedo and normal only")
 register_weights("kpcn", "novar_small_r", "kpcn_novar_small.safetensors",
                  config={"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15},
                  description="kpcn:novar_small's weights with the default U-Net's detail stage after the network "
