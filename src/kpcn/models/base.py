@@ -49,7 +49,11 @@ from torch import nn
 
 from ..inputs import InputSpec, get_input_spec
 
-__all__ = ["DenoiserModel", "check_inputs", "check_detail_config"]
+__all__ = ["DenoiserModel", "check_inputs", "check_detail_config", "DETAIL_STAGE"]
+
+#: the detail stage's settings in the shipped ``*_r`` tags (chosen on the validation scenes random:920001-920018 for
+#: the default U-Net; docs/measured.md, twenty-eighth session)
+DETAIL_STAGE = {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
 
 
 class DenoiserModel(nn.Module):

@@ -56,7 +56,7 @@ from torch import nn
 from ..constants import EPS
 from ..inputs import SPECULAR_LOG_MAX, radiance_of, split_reconstruct
 from ..ops.kernel_apply import KernelApply
-from .base import DenoiserModel
+from .base import DETAIL_STAGE, DenoiserModel
 from .branch import BranchConfig, _check_branch_input, _conv_stack
 from .layers import albedo_ratio, kernel_prior_bias, transform_input
 from .registry import register_model, register_weights
@@ -262,17 +262,13 @@ register_weights("kpcn", "novar_small", "kpcn_novar_small.safetensors",
                  description="KPCN 5x32 on the diffuse/specular split without variances (configs/small_novar.yaml, "
                              "30 procedural scenes), fine-tuned on 32 Blender Cycles scenes "
                              "(configs/small_novar_cycles.yaml, _b, _c, _d)")
-register_weights("kpcn", "can_small_r", "kpcn_can_small.safetensors",
-                 config={"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15},
-                 description="kpcn:can_small's weights with the default U-Net's detail stage after the network "
-                             "(kpcn.inference.detail; its settings, chosen for the U-Net): on the 18 validation scenes "
-                             "+0.1-0.23 dB and +0.003-0.005 SSIM over can_small, every figure better at 2-256 spp; "
-                             "denoise(path)'s model for files with colour, albedo and normal only")
-register_weights("kpcn", "novar_small_r", "kpcn_novar_small.safetensors",
-                 config={"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15},
-                 description="kpcn:novar_small's weights with the default U-Net's detail stage after the network "
-                             "(kpcn.inference.detail; its settings, chosen for the U-Net): on the 18 validation scenes "
-                             "+0.2-0.3 dB and +0.005 SSIM at 16-64 spp over novar_small, every figure better at 2-256 spp; "
-                             "denoise(path)'s model for files without variances")
+for _base, _gain, _files in (
+        ("can_small", "+0.1-0.23 dB and +0.003-0.005 SSIM", "colour, albedo and normal only"),
+        ("novar_small", "+0.2-0.3 dB and +0.005 SSIM at 16-64 spp", "the split but no variances")):
+    register_weights("kpcn", f"{_base}_r", f"kpcn_{_base}.safetensors", config=dict(DETAIL_STAGE),
+                     description=f"kpcn:{_base}'s weights with the default U-Net's detail stage after the network "
+                                 f"(kpcn.inference.detail, its settings): on the 18 validation scenes {_gain} over "
+                                 f"{_base}, every figure better at 2-256 spp; denoise(path)'s model for files with "
+                                 f"{_files}")
 register_weights("dpcn", "small", "dpcn_small.safetensors",
                  description="DPCN 5x32, 5x5 convs (configs/small_dpcn.yaml), 44 procedural scenes")

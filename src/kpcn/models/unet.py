@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import DenoiserModel, check_inputs
+from .base import DETAIL_STAGE, DenoiserModel, check_inputs
 from .kernel_heads import MultiScaleApply, MultiScaleKernels
 from .registry import register_model, register_weights
 from .unet_branch import UNetBranch
@@ -218,7 +218,7 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
 register_weights("unet_kpcn", "wide64r", "unet_wide64h.safetensors", default=True,
-                 config={"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15},
+                 config=dict(DETAIL_STAGE),
                  description="unet_kpcn:wide64h's weights (the same network, 98 k multiply-adds per pixel) with the "
                              "detail stage after it (detail_radius 6, detail_eps 0.01, detail_clip 0.15; kpcn.inference.detail): the "
                              "part of the colour's log residual that the normal explains in each 14x14 window is added "
