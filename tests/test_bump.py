@@ -1,4 +1,5 @@
-"""Normal revisions 2 and 3: the ``normal`` layer holds the normal a bump- or normal-mapped BSDF shades with (kpcn.bump)."""
+"""Normal revisions 2 and 3: the ``normal`` layer holds the normal a bump- or normal-mapped BSDF shades with
+(kpcn.bump)."""
 import numpy as np
 import pytest
 

@@ -2,10 +2,11 @@
 
 A kernel predictor's output is a weighted mean of noisy neighbours, so the shading of a bump-mapped surface
 (glints on a bumpy glossy wall) is averaged away wherever the noise is not yet well below it, although the
-frame's normal layer shows every bump. For models that declare ``detail_regression = (radius, eps)``
-(:class:`~kpcn.models.UNetConfig`'s ``detail_radius`` and ``detail_eps``), :func:`refine_detail` fits, in each
-window, the denoised colour's log residual on the normal and adds back the fitted part
-(:func:`~kpcn.ops.residual_regression`), no channel moved further from the denoised value than its noisy value.
+frame's normal layer shows every bump. For models that declare ``detail_regression = (radius, eps, clip)`` (the
+``detail_*`` fields of :class:`~kpcn.models.UNetConfig` and of KPCN's ``BranchConfig``), :func:`refine_detail` fits,
+in each window, the denoised colour's log residual on the normal and adds back the fitted part
+(:func:`~kpcn.ops.residual_regression`), no channel moved further from the denoised value than its noisy value,
+nor by more than ``clip``.
 
 It runs on the assembled frame a band of rows at a time (:func:`~kpcn.ops.residual_regression_rows`), so a tiled
 or row-streamed run gives the same result as a whole-frame one, in about 60 MB more at 1080p, with one fit per 2×2

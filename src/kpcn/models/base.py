@@ -27,9 +27,9 @@ model is only what it declares here:
   neighbourhood, padded as ``kernel_padding`` says, so it lies in that
   neighbourhood's per-channel range (single-scale kernel predictors; not a
   multi-scale reconstruction, which adds coarse-minus-fine corrections).
-* ``detail_regression`` — ``(radius, eps, clip)`` or None: the inference pipeline refines the assembled colour with the
-  frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further) after
-  the network, outside ``forward``; a stage without weights, so training never sees it.
+* ``detail_regression`` — ``(radius, eps, clip)`` or None: the inference pipeline refines the assembled colour
+  with the frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further)
+  after the network, outside ``forward``; a stage without weights, so training never sees it.
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is

@@ -220,7 +220,8 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
 register_weights("unet_kpcn", "wide64r", "unet_wide64h.safetensors", default=True,
                  config=dict(DETAIL_STAGE),
                  description="unet_kpcn:wide64h's weights (the same network, 98 k multiply-adds per pixel) with the "
-                             "detail stage after it (detail_radius 6, detail_eps 0.01, detail_clip 0.15; kpcn.inference.detail): the "
-                             "part of the colour's log residual that the normal explains in each 14x14 window is added "
-                             "back, no channel moved further than its noisy value (the shading of "
-                             "bump-mapped surfaces); settings chosen on validation scenes random:920001-920018")
+                             "detail stage after it (detail_radius 6, detail_eps 0.01, detail_clip 0.15; "
+                             "kpcn.inference.detail): the part of the colour's log residual that the normal explains "
+                             "in each 14x14 window is added back, no channel moved further than its noisy value (the "
+                             "shading of bump-mapped surfaces); settings chosen on validation scenes "
+                             "random:920001-920018")

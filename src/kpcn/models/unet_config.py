@@ -85,9 +85,10 @@ class UNetConfig:
         detail_radius: 0 (off) or ``r > 0``: after the network, :func:`kpcn.inference.denoise` adds back to the
             assembled colour the part of its log residual ``log1p(noisy) - log1p(denoised)`` that a local linear
             model of the frame's normal explains in each ``(2r + 1)²`` window, no channel moved further from
-            the denoised value than its noisy value is (:func:`~kpcn.ops.residual_regression`): the shading detail of bump-mapped
-            surfaces that the normal shows and a weighted mean of noisy neighbours blurs. An inference stage with no
-            weights: a shipped file runs with or without it (``register_weights(..., config=...)``).
+            the denoised value than its noisy value is (:func:`~kpcn.ops.residual_regression`): the shading
+            detail of bump-mapped surfaces that the normal shows and a weighted mean of noisy neighbours blurs.
+            An inference stage with no weights: a shipped file runs with or without it
+            (``register_weights(..., config=...)``).
         detail_eps: the regression's ridge on the normal's window covariance (> 0): larger keeps less.
         detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
             exceeds ``c`` (fireflies neither steer the fit nor come back through it).

@@ -160,16 +160,11 @@ def residual_regression(denoised: torch.Tensor, noisy: torch.Tensor, guide: torc
         h, w = guide.shape[-2:]
         if h % 2 or w % 2:
             pad = lambda x: F.pad(x, (0, w % 2, 0, h % 2), mode="replicate")  # noqa: E731
-            guide, r, rf = pad(guide), pad(r), pad(rf)
-        g4, r4, f4 = _phases(guide), _phases(r), _phases(rf)  # (B, 4, K, h/2, w/2), (B, 4, C, h/2, w/2)
+            guide, rf = pad(guide), pad(rf)
+        g4, f4 = _phases(guide), _phases(rf)  # (B, 4, K, h/2, w/2), (B, 4, C, h/2, w/2)
         blocks = sum(torch.cat(_stats(g4[:, p], f4[:, p]), 1) for p in range(4)) * 0.25
         coef, off = _fit(_box(blocks, radius // 2), k, c, radius // 2, eps)
-        detail = off[:, None] + sum(g4[:, :, i, None] * coef[:, None, i] for i in range(k))
-        if bound:
-            reach = r4.abs() if clip is None else r4.abs().clamp_max(clip)
-            detail = torch.minimum(torch.maximum(detail, -reach), reach)
-        detail = _unphase(detail)[..., :h, :w]
-        return torch.expm1(base + detail).clamp_min(0)
+        detail = _unphase(off[:, None] + sum(g4[:, :, i, None] * coef[:, None, i] for i in range(k)))[..., :h, :w]
     if bound:
         reach = r.abs() if clip is None else r.abs().clamp_max(clip)
         detail = torch.minimum(torch.maximum(detail, -reach), reach)
