@@ -366,6 +366,11 @@ def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, 
     with caplog.at_level(logging.WARNING, logger="kpcn.train"):
         assert warn_outdated_albedo([root]) == 2
     assert any("2 of 2 frames have normal revision 1" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="kpcn.train"):  # many data sets: three named, the rest counted
+        assert warn_outdated_albedo([root] * 5) == 10
+    assert sum("frames have normal revision 1" in r.getMessage() for r in caplog.records) == 3
+    assert sum("2 more data sets (4 frames" in r.getMessage() for r in caplog.records) == 1
     calls = counting_render(monkeypatch)
     with caplog.at_level(logging.INFO, logger="kpcn.render"):
         render_dataset(root, 1, **{**SMALL, "first_seed": 5})

@@ -95,16 +95,20 @@ def load_pair(pair: FramePair, spec: InputSpec | str = DEFAULT_SPEC) -> dict[str
 
 
 def pair_tensors(noisy: Frame, ref: Frame, spec: InputSpec | str = DEFAULT_SPEC) -> dict[str, torch.Tensor]:
-    """The model inputs of ``noisy`` (as ``spec`` builds them), targets from ``ref`` and ``noisy_color``.
+    """The model inputs of ``noisy`` (as ``spec`` builds them), targets from ``ref``, ``noisy_color`` and
+    ``noisy_normal``.
 
     All ``(1, C, H, W)``: one entry per branch plus ``albedo``, ``y_<branch>``,
-    ``y_color`` and ``noisy_color``.
+    ``y_color``, ``noisy_color`` and, where the spec reads the normal, ``noisy_normal`` (the guide of a model's
+    detail stage, which training's ``train.detail_stage`` applies as the pipeline does).
     """
     spec = get_input_spec(spec)
     inputs = spec.build(frame_to_tensors(noisy, spec.layers))
     targets = spec.targets(frame_to_tensors(ref, spec.target_layers), inputs)
     out = {**inputs, **targets}
     out["noisy_color"] = frame_to_tensors(noisy, ("color",))["color"]
+    if "normal" in spec.layers:
+        out["noisy_normal"] = frame_to_tensors(noisy, ("normal",))["normal"]
     return out
 
 

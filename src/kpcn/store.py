@@ -18,7 +18,7 @@ Layout (default folder ``<data root>/.store/<spec name>/``, :func:`default_store
 
 Channels are stored last, so a patch is one contiguous run per row. Which
 channels are float16 (:func:`float32_channels`): the branch colours and their
-gradients, and the albedo, are float16 — their relative rounding error is at
+gradients, the albedo and the normal (``noisy_normal``), are float16 — their relative rounding error is at
 most ``2**-11`` (``|x| >= 2**-14``), absolute ``2**-25`` below
 (:data:`HALF_RTOL`, :data:`HALF_ATOL`). Float32 are the variance channels
 (they span 1e-40..1e5: a frame of the 30-scene training set has colour
@@ -66,7 +66,7 @@ __all__ = ["STORE_FORMAT", "HALF_RTOL", "HALF_ATOL", "StoreError", "Entry", "Pre
 
 #: Version of the layout and of the preprocessing; entries of another version are rebuilt.
 #: Bump it when the features an input spec builds change.
-STORE_FORMAT = 1
+STORE_FORMAT = 2  # 2: the noisy frame's normal (``noisy_normal``) is stored
 #: float16's largest finite value: a frame with a larger float16-bound value stores it as float32
 HALF_MAX = 65504.0
 #: the float16 round trip: |stored - x| <= HALF_RTOL * |x| + HALF_ATOL (round to nearest, 11-bit significand)
@@ -87,14 +87,14 @@ def default_store_dir(root: str | os.PathLike, spec: InputSpec | str) -> Path:
 def float32_channels(spec: InputSpec, key: str, channels: int) -> np.ndarray:
     """Boolean mask over the ``channels`` of tensor ``key``: True where the store keeps float32.
 
-    Branch tensors: float32 only for the spec's ``variance_channels``; the albedo:
-    none; targets, ``noisy_color`` and any other key: all.
+    Branch tensors: float32 only for the spec's ``variance_channels``; the albedo and
+    ``noisy_normal`` (in [-1, 1]): none; targets, ``noisy_color`` and any other key: all.
     """
     mask = np.ones(channels, bool)
     if key in spec.branches:
         mask[:] = False
         mask[list(spec.variance_channels)] = True
-    elif key == "albedo":
+    elif key in ("albedo", "noisy_normal"):
         mask[:] = False
     return mask
 

@@ -104,6 +104,7 @@ from .train_steps import (
     set_lr,
     stage_of,
     validate,
+    with_detail,
 )
 
 log = logging.getLogger("kpcn.train")
@@ -139,6 +140,9 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     if cfg.data.converged_max_noise is not None and spec.colour_variance is None:
         raise ConfigError(f"data.converged_max_noise: the input spec {spec.name} carries no variance to tell "
                           f"converged pixels from noisy ones; set it to null or train a model that reads variances")
+    if cfg.train.detail_stage and (model.detail_regression is None or "normal" not in spec.layers):
+        raise ConfigError(f"train.detail_stage: the model has no detail stage to train for (set model.detail_radius "
+                          f"> 0 with an input spec that reads the normal; {spec.name} reads {spec.layers})")
 
     # 1. the run folder, the checkpoint and the weights to start from (every rank reads; nothing is written)
     def check_run() -> tuple[dict, Path | None, str | None]:
@@ -252,9 +256,12 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         if cfg.train.augment:  # the same transforms for the same (seed, step, rank): resumable
             batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
         if teacher is not None:  # after augmenting: the teacher sees what the model sees
-            batch = distill_targets(teacher, batch, cfg.train.distill_min_spp)
+            batch = distill_targets(teacher, batch, cfg.train.distill_min_spp,
+                                    model if cfg.train.detail_stage else None)
         lr_now = set_lr(optimizer, step, cfg)
         out = ddp(model_inputs(model, batch))
+        if cfg.train.detail_stage and stage == 2:  # the colour the pipeline gives: the network's, then its detail stage
+            out = with_detail(model, out, batch)
         loss = compute_loss(out, batch, stage, cfg, spec.branches, spec)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"step {step}: non-finite loss {loss.item()}")
@@ -277,7 +284,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         if done % cfg.train.ckpt_every == 0 or done == total:
             checkpoint(done)
         if d.main and len(val) and (done % cfg.train.val_every == 0 or done == total):
-            last_val = validate(ddp, val, d.device)
+            last_val = validate(ddp, val, d.device, cfg.train.detail_stage)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, done)
             f = val[0]

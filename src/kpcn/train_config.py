@@ -179,6 +179,11 @@ class TrainConfig:
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
     precision: str = "float32"
+    #: pass the colour through the model's detail stage (its ``detail_regression``: the config's ``detail_*``
+    #: fields) before the stage-2 loss, in validation and on the teacher's outputs, as :func:`kpcn.denoise` applies
+    #: it after the network: the network is trained for the output the pipeline gives. Needs a model with the stage
+    #: and a data set whose frames have a normal layer (``noisy_normal``)
+    detail_stage: bool = False
 
     def __post_init__(self) -> None:
         from .losses import create_loss, list_losses

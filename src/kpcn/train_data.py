@@ -54,30 +54,45 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
     return root
 
 
+#: outdated data sets named one by one in training's warnings; the others are counted in one line
+NAMED_OUTDATED = 3
+
+
 def warn_outdated_albedo(roots) -> int:
     """Warn about data sets whose Mitsuba frames were rendered before the current albedo or normal revision
-    (:mod:`kpcn.render.albedo`); returns how many such frames there are."""
+    (:mod:`kpcn.render.albedo`), the first :data:`NAMED_OUTDATED` by name and command and the rest in one line;
+    returns how many such frames there are."""
     from .render import dataset_status
     from .render.albedo import ALBEDO_REVISION, NORMAL_REVISION
     from .render.cycles_scene import is_generated
 
-    total = 0
+    total, named, more = 0, 0, []
     for root in roots:
         status = dataset_status(root)
         frames = [rec for sc in (status.manifest or {}).get("scenes", []) for rec in sc.get("frames", {}).values()]
         mitsuba = [rec for rec in frames if not is_generated(rec.get("source"))]
         old = sum(1 for rec in mitsuba if rec.get("albedo", 1) < ALBEDO_REVISION)
+        normal_revs = [rec.get("normal", 1) for rec in mitsuba]
+        old_normal = sum(1 for v in normal_revs if v < NORMAL_REVISION)
+        total += max(old, old_normal)
+        if not (old or old_normal):
+            continue
+        if named == NAMED_OUTDATED:
+            more.append((root, max(old, old_normal)))
+            continue
+        named += 1
         if old:
             log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
                         "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),
                         status.command())
-        normal_revs = [rec.get("normal", 1) for rec in mitsuba]
-        old_normal = sum(1 for v in normal_revs if v < NORMAL_REVISION)
         if old_normal:
             blind = "bump and normal maps" if min(normal_revs) < 2 else "normal maps"
             log.warning("%s: %d of %d frames have normal revision %d (blind to %s); `%s` rewrites their normal "
                         "layers only", root, old_normal, len(frames), min(normal_revs), blind, status.command())
-        total += max(old, old_normal)
+    if more:
+        log.warning("%d more data sets (%d frames, %s ...) have outdated albedo or normal layers; `python -m "
+                    "kpcn.render dataset` with each one's own arguments rewrites those layers only", len(more),
+                    sum(n for _, n in more), more[0][0])
     return total
 
 

@@ -12,6 +12,7 @@ import re
 import torch
 
 from .config import ConfigError, to_dict
+from .models.base import DETAIL_STAGE
 from .models.registry import create_model, model_config_class
 from .train_config import RunConfig
 
@@ -41,7 +42,8 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
                   "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix"}
-    free = {"name"} | (extendable if cfg.train.init_extend else set())
+    # the detail stage's settings add no parameter: a file trained without the stage starts one trained with it
+    free = {"name", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]

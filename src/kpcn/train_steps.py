@@ -10,11 +10,12 @@ from .distributed import Dist
 from .losses import create_loss
 from .metrics import all_metrics, tonemap
 from .models import create_model
+from .ops.regression import residual_regression
 from .schedule import lr_at
 from .train_config import RunConfig
 
-__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "compute_loss",
-           "batches", "validate"]
+__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "with_detail",
+           "compute_loss", "batches", "validate"]
 
 
 def build_model(cfg: RunConfig) -> torch.nn.Module:
@@ -70,15 +71,38 @@ def build_teacher(cfg: RunConfig, model, device) -> torch.nn.Module:
     return teacher
 
 
+def with_detail(model, out: dict, batch: dict) -> dict:
+    """``out`` with its ``color`` passed through ``model``'s detail stage (:attr:`DenoiserModel.detail_regression`)
+    as the pipeline applies it after the network, one fit per 2×2 block, guided by ``batch["noisy_normal"]`` with
+    ``batch["noisy_color"]`` as the noisy colour (``(B, 3, H, W)``); differentiable. ``out`` is not changed.
+
+    Raises:
+        ValueError: the model has no detail stage, or the batch no ``noisy_normal``.
+    """
+    reg = _unwrap(model).detail_regression
+    if reg is None:
+        raise ValueError("train.detail_stage: the model has no detail stage (its config's detail_radius is 0)")
+    if "noisy_normal" not in batch:
+        raise ValueError("train.detail_stage: the batch has no noisy_normal (the input spec reads no normal)")
+    radius, eps, clip = reg
+    color = out["color"]
+    refined = residual_regression(color, batch["noisy_color"].to(color.dtype), batch["noisy_normal"].to(color.dtype),
+                                  radius=radius, eps=eps, stride=2, clip=clip)
+    return {**out, "color": refined}
+
+
 @torch.no_grad()
-def distill_targets(teacher, batch: dict, min_spp: int) -> dict:
+def distill_targets(teacher, batch: dict, min_spp: int, detail_of=None) -> dict:
     """``batch`` with the targets of its patches whose input has ``min_spp`` or more samples per pixel
     (``batch["spp"]``, ``(B,)``; converged pairs, spp 0, are never) replaced by ``teacher``'s outputs on them:
-    ``y_<k>`` for every output ``k`` of ``teacher`` that the batch has a target for. The batch is not changed."""
+    ``y_<k>`` for every output ``k`` of ``teacher`` that the batch has a target for, its colour passed through
+    ``detail_of``'s detail stage first where given (:func:`with_detail`). The batch is not changed."""
     pick = batch["spp"] >= min_spp
     if not bool(pick.any()):
         return batch
     out = teacher({k: v[pick] for k, v in model_inputs(teacher, batch).items()})
+    if detail_of is not None:
+        out = with_detail(detail_of, out, {k: batch[k][pick] for k in ("noisy_color", "noisy_normal")})
     batch = dict(batch)
     for k, v in out.items():
         if f"y_{k}" in batch:
@@ -151,14 +175,17 @@ def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
 
 
 @torch.no_grad()
-def validate(model, frames: FrameDataset, device) -> dict[str, float]:
-    """Mean metrics of the full-frame reconstruction over the validation frames."""
+def validate(model, frames: FrameDataset, device, detail: bool = False) -> dict[str, float]:
+    """Mean metrics of the full-frame reconstruction over the validation frames (``detail``: after the model's
+    detail stage, :func:`with_detail`)."""
     model.eval()
     sums: dict[str, float] = {}
     for i in range(len(frames)):
         f = frames[i]
         inputs = {k: v[None].to(device) for k, v in model_inputs(model, f).items()}
         out = _unwrap(model)(inputs)
+        if detail:
+            out = with_detail(model, out, {k: f[k][None].to(device) for k in ("noisy_color", "noisy_normal")})
         pred = out["color"][0].permute(1, 2, 0).cpu().numpy()
         ref = f["y_color"].permute(1, 2, 0).numpy()
         for k, v in all_metrics(pred, ref).items():

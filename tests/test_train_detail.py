@@ -1,0 +1,64 @@
+"""``train.detail_stage``: the network trained for the colour the pipeline gives, its detail stage included."""
+import pytest
+import torch
+
+from kpcn.train import train
+from test_train import tiny_cfg
+
+STAGE = {"detail_radius": 2, "detail_eps": 0.01, "detail_clip": 0.15}
+
+
+def _unet_cfg(tiny_dataset, tmp_path, name, model_kw=(), **train_kw):
+    cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 0, "stage2_steps": 2, **train_kw})
+    cfg.model = dict(name="unet_kpcn", widths=[8, 12], convs_per_level=1, kernel_size=3, stem="half", guide_channels=4,
+                     summary_channels=4, kernel_scales=2, **dict(model_kw))
+    return cfg
+
+
+def test_detail_stage_trains_and_validates_the_pipelines_output(tiny_dataset, tmp_path):
+    """A file trained without the stage starts a run with it (the stage adds no parameter); the run's first loss
+    is the loss of the staged colour, so it differs from the same run's without the stage; ``with_detail`` on a
+    whole rendered frame gives what ``denoise`` gives; the teacher's targets pass through the stage too; a model
+    without a stage is refused."""
+    from kpcn.config import ConfigError
+    from kpcn.data import FrameDataset, PatchDataset
+    from kpcn.inference import load_model
+    from kpcn.inference.pipeline import denoise_result
+    from kpcn.io import read_exr
+    from kpcn.train import split_pairs
+    from kpcn.train_steps import distill_targets, model_inputs, validate, with_detail
+
+    train(_unet_cfg(tiny_dataset, tmp_path, "plain", stage2_steps=3, lr=3e-3), progress=False)
+    src = str(tmp_path / "plain" / "model.safetensors")
+    first = {}
+    for name, on in (("staged", True), ("unstaged", False)):
+        cfg = _unet_cfg(tiny_dataset, tmp_path, name, STAGE, init=src, lr=1e-12, detail_stage=on)
+        first[name] = train(cfg, progress=False)["losses"][0]
+    assert first["staged"] != pytest.approx(first["unstaged"], rel=1e-4, abs=0), first
+
+    model = load_model(str(tmp_path / "staged" / "model.safetensors"), device="cpu")
+    assert model.detail_regression == (2, 0.01, 0.15)
+    pairs = split_pairs(_unet_cfg(tiny_dataset, tmp_path, "x"))[0]
+    frames = FrameDataset(pairs[:1])
+    f = frames[0]
+    with torch.no_grad():
+        out = with_detail(model, model({k: v[None] for k, v in model_inputs(model, f).items()}),
+                          {k: f[k][None] for k in ("noisy_color", "noisy_normal")})
+        raw = model({k: v[None] for k, v in model_inputs(model, f).items()})
+    want = denoise_result(read_exr(pairs[0].input_path), model, tile=None, precision="float32").color
+    got = out["color"][0].permute(1, 2, 0).numpy()
+    assert abs(got - want).max() <= 1e-4 * max(1.0, float(abs(want).max()))
+    assert (out["color"] - raw["color"]).abs().max() > 1e-4  # the stage did something on this frame
+    assert validate(model, frames, "cpu", detail=True)["relmse"] != validate(model, frames, "cpu")["relmse"]
+
+    ds = PatchDataset(pairs, 24, 8, seed=1, label_spp=True)
+    batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])
+    hi = batch["spp"] >= 8
+    got = distill_targets(model, batch, 8, detail_of=model)["y_color"][hi]
+    with torch.no_grad():
+        sub = {k: v[hi] for k, v in batch.items()}
+        want = with_detail(model, model(model_inputs(model, sub)), sub)["color"]
+    torch.testing.assert_close(got, want)
+
+    with pytest.raises(ConfigError, match="no detail stage"):
+        train(_unet_cfg(tiny_dataset, tmp_path, "refused", detail_stage=True), progress=False)
