@@ -60,6 +60,17 @@ def test_different_networks_are_refused_naming_what_differs(two_runs, tmp_path):
         blend_files([a, c], [0.5, 0.5])
 
 
+def test_a_run_with_the_detail_stage_blends_with_one_without_and_keeps_its_stage(two_runs, tmp_path):
+    """The detail stage's settings add no parameter: a file trained with the stage blends with one without, and
+    the blend has the first source's stage (the same network; other fields still refuse, above)."""
+    a, b = two_runs
+    staged = tmp_path / "staged.safetensors"
+    save_weights(staged, _net(1, detail_radius=4, detail_eps=0.02, detail_clip=0.1))
+    model, _ = blend_files([staged, b], [0.5, 0.5])
+    assert model.detail_regression == (4, 0.02, 0.1)
+    assert blend_files([b, staged], [0.5, 0.5])[0].detail_regression is None
+
+
 def test_the_cli_never_overwrites_a_source_and_checks_the_coefficients(two_runs, capsys):
     a, b = two_runs
     before = a.read_bytes()

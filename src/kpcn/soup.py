@@ -10,7 +10,9 @@ default ``unet_kpcn:wide64h`` is such a blend (``configs/unet_wide64h.yaml``)::
 
 Each source is a ``.safetensors`` weights file or a shipped ``model:tag``. The
 files must hold the same model with the same hyper-parameters and the same
-tensor names and shapes (:class:`~kpcn.checkpoint.CheckpointError` otherwise).
+tensor names and shapes (:class:`~kpcn.checkpoint.CheckpointError` otherwise),
+but for the detail stage's settings (``detail_*``, no parameters), which the
+blend takes from the first source.
 Floating-point tensors are blended in float64 and stored in their own dtype;
 any other tensor (an integer counter) must be equal in every file. The output's
 metadata records its sources (with their SHA-256) and coefficients, so that the
@@ -28,6 +30,7 @@ from typing import Sequence
 import torch
 
 from .checkpoint import CheckpointError, model_from_record, read_weights, save_weights
+from .models.base import DETAIL_STAGE
 from .inference.paths import check_not_input, check_output_path
 
 __all__ = ["blend_state", "blend_files", "resolve_sources", "main"]
@@ -107,9 +110,10 @@ def blend_files(sources: Sequence[str | os.PathLike], alphas: Sequence[float] | 
     records, states = zip(*(read_weights(p) for p in paths))
     # compared as built (a file written before a hyper-parameter existed holds its default)
     built = [model_from_record(r["model"], r["hparams"], st, str(p)) for r, st, p in zip(records, states, paths)]
-    h0 = built[0].hparams()
+    # the detail stage's settings add no parameter: the blend takes the first source's
+    h0 = {k: v for k, v in built[0].hparams().items() if k not in DETAIL_STAGE}
     for p, r, m in zip(paths[1:], records[1:], built[1:]):
-        h = m.hparams()
+        h = {k: v for k, v in m.hparams().items() if k not in DETAIL_STAGE}
         if r["model"] != records[0]["model"] or h != h0:
             diff = sorted(k for k in set(h) | set(h0) if h.get(k) != h0.get(k))
             raise CheckpointError(f"soup: {p} is {r['model']} and {paths[0]} is {records[0]['model']}, "
