@@ -257,7 +257,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
             batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
         if teacher is not None:  # after augmenting: the teacher sees what the model sees
             batch = distill_targets(teacher, batch, cfg.train.distill_min_spp,
-                                    model if cfg.train.detail_stage else None)
+                                    model if cfg.train.detail_stage else None, cfg.train.distill_tta)
         lr_now = set_lr(optimizer, step, cfg)
         out = ddp(model_inputs(model, batch))
         if cfg.train.detail_stage and stage == 2:  # the colour the pipeline gives: the network's, then its detail stage

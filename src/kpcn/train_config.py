@@ -175,6 +175,10 @@ class TrainConfig:
     #: fine enough for high-spp inputs (a 512-spp reference has half a 256-spp input's noise). Needs ``init``;
     #: the file's model must read the config's input spec. None: off
     distill_min_spp: int | None = None
+    #: the teacher's outputs (``distill_min_spp``) are the mean of its outputs on this many flips and transposes of
+    #: each patch (1: the patch as it is; at most 8): a target with less of the network's own variance, at that many
+    #: teacher passes a step
+    distill_tta: int = 1
     #: dtype of the model's hidden layers (``DenoiserModel.set_compute_dtype``): float32, or bfloat16 (autocast
     #: around the conv stack of models that can; weights, optimiser, heads and loss stay float32). On CPUs with
     #: AMX, bfloat16 steps of the U-Net take half the time of float32 ones at twice the width.
@@ -223,6 +227,8 @@ class TrainConfig:
             if not self.init:
                 raise ConfigError("train.distill_min_spp: needs train.init (its model is the teacher)")
             _at_least("train", self, "distill_min_spp", 1)
+        if not (isinstance(self.distill_tta, int) and 1 <= self.distill_tta <= 8):
+            raise ConfigError(f"train.distill_tta: the number of flips and transposes, 1 to 8, got {self.distill_tta!r}")
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:

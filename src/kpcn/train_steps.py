@@ -5,6 +5,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
+from .augment import Augmentation, augment_patch
 from .data import FrameDataset, PatchDataset
 from .distributed import Dist
 from .losses import create_loss
@@ -14,8 +15,8 @@ from .ops.regression import residual_regression
 from .schedule import lr_at
 from .train_config import RunConfig
 
-__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "with_detail",
-           "compute_loss", "batches", "validate"]
+__all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "teacher_outputs",
+           "with_detail", "compute_loss", "batches", "validate"]
 
 
 def build_model(cfg: RunConfig) -> torch.nn.Module:
@@ -91,16 +92,47 @@ def with_detail(model, out: dict, batch: dict) -> dict:
     return {**out, "color": refined}
 
 
+#: the flips and transposes a teacher's outputs are averaged over (``train.distill_tta`` takes the first n)
+TEACHER_VIEWS = tuple(Augmentation(flip_x=fx, flip_y=fy, transpose=t) for t, fx, fy in (
+    (False, False, False), (True, False, False), (False, True, False), (False, False, True),
+    (False, True, True), (True, True, False), (True, False, True), (True, True, True)))
+
+
+def _undo_view(x: torch.Tensor, view: Augmentation) -> torch.Tensor:
+    """An RGB-like output ``(B, C, H, W)`` of a transformed input, transformed back (flips, then the transpose)."""
+    if view.flip_y:
+        x = x.flip(-2)
+    if view.flip_x:
+        x = x.flip(-1)
+    return x.transpose(-1, -2) if view.transpose else x
+
+
+def teacher_outputs(teacher, inputs: dict, views: int = 1) -> dict:
+    """``teacher``'s outputs on ``inputs`` (square ``(B, C, S, S)`` patches), averaged over the first ``views`` of
+    :data:`TEACHER_VIEWS`: each view's inputs transformed as training's augmentation transforms them
+    (:func:`kpcn.augment.augment_patch`), its outputs transformed back. Averaging removes part of the network's own
+    variance (on the report's frames the mean of 8 views closes 45 % of the default's 4-spp PSNR gap to OIDN)."""
+    spec = teacher.input_spec
+    total: dict = {}
+    for view in TEACHER_VIEWS[:views]:
+        x = {k: augment_patch(v, view, spec if k in spec.branches else None) for k, v in inputs.items()}
+        for k, v in teacher(x).items():
+            v = _undo_view(v, view)
+            total[k] = v if k not in total else total[k] + v
+    return {k: v / views for k, v in total.items()} if views > 1 else total
+
+
 @torch.no_grad()
-def distill_targets(teacher, batch: dict, min_spp: int, detail_of=None) -> dict:
+def distill_targets(teacher, batch: dict, min_spp: int, detail_of=None, views: int = 1) -> dict:
     """``batch`` with the targets of its patches whose input has ``min_spp`` or more samples per pixel
-    (``batch["spp"]``, ``(B,)``; converged pairs, spp 0, are never) replaced by ``teacher``'s outputs on them:
-    ``y_<k>`` for every output ``k`` of ``teacher`` that the batch has a target for, its colour passed through
-    ``detail_of``'s detail stage first where given (:func:`with_detail`). The batch is not changed."""
+    (``batch["spp"]``, ``(B,)``; converged pairs, spp 0, are never) replaced by ``teacher``'s outputs on them
+    (averaged over ``views`` flips and transposes, :func:`teacher_outputs`): ``y_<k>`` for every output ``k`` of
+    ``teacher`` that the batch has a target for, its colour passed through ``detail_of``'s detail stage first where
+    given (:func:`with_detail`). The batch is not changed."""
     pick = batch["spp"] >= min_spp
     if not bool(pick.any()):
         return batch
-    out = teacher({k: v[pick] for k, v in model_inputs(teacher, batch).items()})
+    out = teacher_outputs(teacher, {k: v[pick] for k, v in model_inputs(teacher, batch).items()}, views)
     if detail_of is not None:
         out = with_detail(detail_of, out, {k: batch[k][pick] for k in ("noisy_color", "noisy_normal")})
     batch = dict(batch)
