@@ -228,7 +228,8 @@ class TrainConfig:
                 raise ConfigError("train.distill_min_spp: needs train.init (its model is the teacher)")
             _at_least("train", self, "distill_min_spp", 1)
         if not (isinstance(self.distill_tta, int) and 1 <= self.distill_tta <= 8):
-            raise ConfigError(f"train.distill_tta: the number of flips and transposes, 1 to 8, got {self.distill_tta!r}")
+            raise ConfigError(f"train.distill_tta: the number of flips and transposes, 1 to 8, got "
+                              f"{self.distill_tta!r}")
         if self.init_prune and not self.init_extend:
             raise ConfigError("train.init_prune: needs train.init_extend (it narrows what extending maps)")
         if self.precision not in PRECISIONS:
