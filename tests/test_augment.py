@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from kpcn.augment import PERMUTATIONS, Augmentation, augment_batch, augment_patch
+from kpcn.augment import PERMUTATIONS, Augmentation, augment_batch, augment_patch, undo_flips
 from kpcn.features import frame_to_tensors
 from kpcn.inputs import get_input_spec
 
@@ -87,3 +87,12 @@ def test_batch_augmentation_is_per_patch_and_reproducible(frame):
     assert len(distinct) > 1, "every patch of the batch got the same transform"
     with pytest.raises(ValueError, match="only branches"):
         augment_batch({"depth": torch.zeros(2, 1, 4, 4)}, spec, torch.Generator())
+
+
+@pytest.mark.parametrize("t,fx,fy", [(t, fx, fy) for t in (0, 1) for fx in (0, 1) for fy in (0, 1)])
+def test_undo_flips_returns_an_rgb_patch_to_where_it_was(t, fx, fy):
+    """Every flip and transpose undone (a non-square patch, so a wrong order or a missed transpose shows)."""
+    x = torch.arange(3 * 4 * 6, dtype=torch.float32).view(1, 3, 4, 6)
+    aug = Augmentation(flip_x=bool(fx), flip_y=bool(fy), transpose=bool(t))
+    y = augment_patch(x, aug)
+    assert torch.equal(undo_flips(y, aug), x)

@@ -3,16 +3,15 @@ import pytest
 import torch
 
 from kpcn.train import train
-from test_train import tiny_cfg
+from test_train import _tiny_unet_cfg
 
 STAGE = {"detail_radius": 2, "detail_eps": 0.01, "detail_clip": 0.15}
 
 
 def _unet_cfg(tiny_dataset, tmp_path, name, model_kw=(), **train_kw):
-    cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 0, "stage2_steps": 2, **train_kw})
-    cfg.model = dict(name="unet_kpcn", widths=[8, 12], convs_per_level=1, kernel_size=3, stem="half", guide_channels=4,
-                     summary_channels=4, kernel_scales=2, **dict(model_kw))
-    return cfg
+    """test_train's tiny U-Net, stage 2 only (the stage acts on the colour)."""
+    return _tiny_unet_cfg(tiny_dataset, tmp_path, name, dict(model_kw), **{"stage1_steps": 0, "stage2_steps": 2,
+                                                                            **train_kw})
 
 
 def test_detail_stage_trains_and_validates_the_pipelines_output(tiny_dataset, tmp_path):

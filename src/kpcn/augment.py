@@ -36,7 +36,7 @@ import torch
 
 from .inputs import InputSpec, get_input_spec
 
-__all__ = ["Augmentation", "augment_patch", "augment_batch"]
+__all__ = ["Augmentation", "augment_patch", "undo_flips", "augment_batch"]
 
 PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
 
@@ -100,6 +100,16 @@ def augment_patch(x: torch.Tensor, aug: Augmentation, spec: InputSpec | None = N
     if aug.perm:
         x = _permute_rgb(x, starts, PERMUTATIONS[aug.perm])
     return x.contiguous()
+
+
+def undo_flips(x: torch.Tensor, aug: Augmentation) -> torch.Tensor:
+    """An image ``(..., C, H, W)`` made from a patch :func:`augment_patch` transformed, with ``aug``'s flips and
+    transpose undone (in the reverse order); its channel permutation is not undone."""
+    if aug.flip_y:
+        x = x.flip(-2)
+    if aug.flip_x:
+        x = x.flip(-1)
+    return x.transpose(-1, -2) if aug.transpose else x
 
 
 def augment_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: torch.Generator,

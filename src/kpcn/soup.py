@@ -30,8 +30,8 @@ from typing import Sequence
 import torch
 
 from .checkpoint import CheckpointError, model_from_record, read_weights, save_weights
-from .models.base import DETAIL_STAGE
 from .inference.paths import check_not_input, check_output_path
+from .models.base import DETAIL_STAGE
 
 __all__ = ["blend_state", "blend_files", "resolve_sources", "main"]
 

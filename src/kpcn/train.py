@@ -140,7 +140,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     if cfg.data.converged_max_noise is not None and spec.colour_variance is None:
         raise ConfigError(f"data.converged_max_noise: the input spec {spec.name} carries no variance to tell "
                           f"converged pixels from noisy ones; set it to null or train a model that reads variances")
-    if cfg.train.detail_stage and (model.detail_regression is None or "normal" not in spec.layers):
+    if cfg.train.detail_stage and model.detail_regression is None:  # a stage implies a spec with the normal
         raise ConfigError(f"train.detail_stage: the model has no detail stage to train for (set model.detail_radius "
                           f"> 0 with an input spec that reads the normal; {spec.name} reads {spec.layers})")
 

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
-from .augment import Augmentation, augment_patch
+from .augment import Augmentation, augment_patch, undo_flips
 from .data import FrameDataset, PatchDataset
 from .distributed import Dist
 from .losses import create_loss
@@ -98,15 +98,6 @@ TEACHER_VIEWS = tuple(Augmentation(flip_x=fx, flip_y=fy, transpose=t) for t, fx,
     (False, True, True), (True, True, False), (True, False, True), (True, True, True)))
 
 
-def _undo_view(x: torch.Tensor, view: Augmentation) -> torch.Tensor:
-    """An RGB-like output ``(B, C, H, W)`` of a transformed input, transformed back (flips, then the transpose)."""
-    if view.flip_y:
-        x = x.flip(-2)
-    if view.flip_x:
-        x = x.flip(-1)
-    return x.transpose(-1, -2) if view.transpose else x
-
-
 def teacher_outputs(teacher, inputs: dict, views: int = 1) -> dict:
     """``teacher``'s outputs on ``inputs`` (square ``(B, C, S, S)`` patches), averaged over the first ``views`` of
     :data:`TEACHER_VIEWS`: each view's inputs transformed as training's augmentation transforms them
@@ -117,7 +108,7 @@ def teacher_outputs(teacher, inputs: dict, views: int = 1) -> dict:
     for view in TEACHER_VIEWS[:views]:
         x = {k: augment_patch(v, view, spec if k in spec.branches else None) for k, v in inputs.items()}
         for k, v in teacher(x).items():
-            v = _undo_view(v, view)
+            v = undo_flips(v, view)
             total[k] = v if k not in total else total[k] + v
     return {k: v / views for k, v in total.items()} if views > 1 else total
 

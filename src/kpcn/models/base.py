@@ -29,7 +29,8 @@ model is only what it declares here:
   multi-scale reconstruction, which adds coarse-minus-fine corrections).
 * ``detail_regression`` — ``(radius, eps, clip)`` or None: the inference pipeline refines the assembled colour
   with the frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further)
-  after the network, outside ``forward``; a stage without weights, so training never sees it.
+  after the network, outside ``forward``; a stage without weights, which training applies only with
+  ``train.detail_stage`` (:func:`kpcn.train_steps.with_detail`).
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
