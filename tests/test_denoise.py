@@ -543,7 +543,7 @@ def test_bench_denoise_rounds_take_turns_and_pool_every_call(capsys, tmp_path):
 def test_bench_takes_a_bare_model_name_as_its_default_weights():
     """``--models unet_kpcn`` times the weights ``denoise`` would use (the registered default and its config);
     a name that is neither a config, a model nor a fallback is refused."""
-    from kpcn.bench.denoise import _bench_model, _denoise_model_spec
+    from kpcn.bench.models import _bench_model, _denoise_model_spec
     from kpcn.inference import load_model
 
     name, kw, origin = _denoise_model_spec("unet_kpcn")

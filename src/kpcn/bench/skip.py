@@ -11,7 +11,8 @@ import statistics
 import sys
 import time
 
-from .denoise import _bench_model, _denoise_model_spec, _loadavg
+from .denoise import _loadavg
+from .models import _bench_model, _denoise_model_spec
 
 
 def bench_denoise_skip(args) -> int:
