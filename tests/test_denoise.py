@@ -552,3 +552,15 @@ def test_bench_takes_a_bare_model_name_as_its_default_weights():
     assert _bench_model(name, kw) is load_model(None, "cpu")
     with pytest.raises(ValueError, match="unknown model config"):
         _denoise_model_spec("no_such_model")
+
+
+def test_bench_finds_the_checkouts_configs_from_any_folder(tmp_path, monkeypatch):
+    """A config name resolves to the checkout's ``configs/<name>.yaml`` when run from another folder too."""
+    from pathlib import Path
+
+    from kpcn.bench.models import _denoise_model_spec
+
+    monkeypatch.chdir(tmp_path)
+    name, kw, origin = _denoise_model_spec("unet_wide64h")
+    want = Path(__file__).resolve().parents[1] / "configs" / "unet_wide64h.yaml"
+    assert name == "unet_kpcn" and kw["widths"] == [64, 96, 128, 160] and Path(origin) == want

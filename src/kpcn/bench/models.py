@@ -41,7 +41,7 @@ def _denoise_model_spec(name: str) -> tuple[str, dict | None, str]:
     if name.endswith((".yaml", ".yml")):
         candidates = [Path(name)]
     else:
-        root = Path(__file__).resolve().parents[2]
+        root = Path(__file__).resolve().parents[3]  # the checkout's root (<root>/src/kpcn/bench/models.py)
         candidates = [Path("configs") / f"{name}.yaml", root / "configs" / f"{name}.yaml"]
     for path in candidates:
         if path.is_file():
