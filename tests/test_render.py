@@ -219,3 +219,42 @@ def test_variant_choice_is_checked(monkeypatch):
     monkeypatch.setenv("KPCN_MITSUBA_VARIANT", "scalar_spectral")
     with pytest.raises(RendererUnavailable, match="KPCN_MITSUBA_VARIANT.*llvm_ad_rgb, cuda_ad_rgb"):
         chosen_variant()
+
+
+def test_extended_frame_is_the_longer_render(mi):
+    """A frame given more samples by :func:`extend_frame` (its passes kept, the following ones added) is the frame
+    rendered with that many samples directly, variances included."""
+    from kpcn.render import extend_frame
+
+    kw = dict(resolution=(16, 16), role=1, pass_spp=2)
+    short = render_frame("test:glossy", 4, 3, **kw)
+    direct = render_frame("test:glossy", 8, 3, **kw)
+    longer = extend_frame(short, "test:glossy", 8, 3, **kw)
+    assert longer.spp == 8 and sorted(longer.layers) == sorted(direct.layers)
+    for name in direct.layers:
+        np.testing.assert_allclose(longer[name], direct[name], rtol=1e-4, atol=1e-6, err_msg=name)
+    assert not np.allclose(short["color"], direct["color"])  # the added passes are new samples
+    with pytest.raises(ValueError, match="not at least 2 above"):
+        extend_frame(short, "test:glossy", 5, 3, **kw)
+
+
+def test_merged_frames_are_the_union_of_their_samples():
+    """Pure maths: two frames' means and variances of the mean merge into those of all their samples."""
+    from kpcn.io import Frame
+    from kpcn.render import merge_frames
+
+    rng = np.random.default_rng(0)
+    samples = rng.lognormal(0.0, 1.5, size=(12, 4, 5, 3))  # 12 samples per pixel, heavy-tailed
+
+    def frame(s):
+        n = len(s)
+        return Frame({"color": s.mean(0).astype(np.float32), "colorVariance": (s.var(0, ddof=1) / n).astype(np.float32),
+                      "depth": np.full((4, 5, 1), float(n), np.float32)}, {"spp": n, "renderTimeSeconds": 1.0})
+
+    merged, whole = merge_frames(frame(samples[:7]), frame(samples[7:])), frame(samples)
+    assert merged.spp == 12 and merged.meta["renderTimeSeconds"] == 2.0
+    np.testing.assert_allclose(merged["color"], whole["color"], rtol=1e-5)
+    np.testing.assert_allclose(merged["colorVariance"], whole["colorVariance"], rtol=1e-4)
+    np.testing.assert_allclose(merged["depth"], (7 * 7 + 5 * 5) / 12)  # a layer without variance: the weighted mean
+    with pytest.raises(ValueError, match="different layers"):
+        merge_frames(frame(samples[:7]), Frame({"color": samples[0].astype(np.float32)}, {"spp": 1}))

@@ -37,6 +37,7 @@ from kpcn.report import (
     nearest_spp,
     parse_model_spec,
     reference_floor,
+    refined_spp,
     render_scene,
     render_time_model,
     run_report,
@@ -223,6 +224,63 @@ def test_rows_below_the_reference_floor_are_flagged(report):
         assert m["ref_limited"] == sum(r["ref_limited"] for r in res.rows if (r["method"], r["spp"]) == (m["method"], m["spp"]))
 
 
+def test_reference_refined_while_its_noise_is_above_the_target(report, tmp_path):
+    """``ref_floor_target``: a reference whose own noise is above it gets its spp doubled (as often as the floor's
+    1/spp fall predicts), its samples kept; the refinement is cached, and a larger one is built on it."""
+    import dataclasses
+    import shutil
+
+    cfg, _ = report
+    label = cfg.scenes[0]
+    slug = label.replace(":", "_")
+    shutil.copytree(cfg.folder / "renders" / slug, tmp_path / cfg.name / "renders" / slug)
+    base = _scene_renders(cfg, label).reference
+    floor = reference_floor(base)
+    assert base.spp == 128 and cfg.ref_floor_target is None
+    fine = dataclasses.replace(cfg, out=str(tmp_path), ref_floor_target=floor / 3, ref_spp_max=512)
+    said = []
+    sr = render_scene(fine, label, progress=said.append)
+    # predicted 4x (the floor falls as 1/spp), capped at 512: one extension, 384 more samples
+    assert sr.reference.spp == 512 and len(said) == 1 and "from 128 to 512 spp" in said[0]
+    assert [Path(p).name for p in sr.rendered] == ["reference_512spp_seed0.exr"]
+    # four times the samples: less noise (not a quarter here: 128 samples underrate a heavy tail's variance)
+    assert reference_floor(sr.reference) < 0.75 * floor
+    kept = read_exr(Path(sr.rendered[0]))
+    assert kept.spp == 512 and np.array_equal(kept["color"], sr.reference["color"])
+    for spp, frame in sr.inputs.items():  # the inputs are the cached ones, untouched
+        assert np.array_equal(frame["color"], _scene_renders(cfg, label).inputs[spp]["color"])
+    render_scene(fine, label, progress=lambda msg: pytest.fail(f"rendered again: {msg}"))
+    # a lower target and a higher cap: built on the cached 512, doubled until the floor is met or the cap reached
+    finer = dataclasses.replace(fine, ref_floor_target=floor / 100, ref_spp_max=2048)
+    said = []
+    ref = render_scene(finer, label, progress=said.append).reference
+    assert ref.spp == 2048 and said and "from 512 to" in said[0] and "to 2048 spp" in said[-1]
+    assert reference_floor(ref) < reference_floor(sr.reference)
+    with pytest.raises(ValueError, match="ref_spp_max"):
+        dataclasses.replace(fine, ref_spp_max=64).validate()
+    with pytest.raises(ValueError, match="ref_floor_target"):
+        dataclasses.replace(fine, ref_floor_target=0.0).validate()
+
+
+def test_refined_spp():
+    assert refined_spp(2048, 0.0107, 0.0015, 16384) == 16384  # 8x: 0.00134
+    assert refined_spp(2048, 0.0058, 0.0015, 16384) == 8192  # 4x: 0.00145
+    assert refined_spp(2048, 0.0014, 0.0015, 16384) == 2048  # already below
+    assert refined_spp(2048, 0.1, 0.0015, 16384) == 16384  # capped
+    assert refined_spp(2048, 0.1, 0.0015, 3000) == 2048  # no doubling fits
+
+
+def test_ref_floor_target_flags():
+    from kpcn.report.cli import _parse_args
+
+    assert _parse_args([])[0].ref_floor_target == ReportConfig().ref_floor_target
+    assert _parse_args(["--ref-floor-target", "none"])[0].ref_floor_target is None
+    cfg = _parse_args(["--ref-floor-target", "0.002", "--ref-spp-max", "8192"])[0]
+    assert (cfg.ref_floor_target, cfg.ref_spp_max) == (0.002, 8192)
+    with pytest.raises(SystemExit):
+        _parse_args(["--ref-floor-target", "low"])
+
+
 def test_equal_time_headline_is_the_median_of_the_scenes_kept(report):
     cfg, res = report
     eq = res.equal_time
@@ -395,6 +453,7 @@ def test_default_settings():
     assert len(cfg.scenes) >= 8 and tuple(cfg.resolution) == (256, 256)
     assert cfg.spp == [2, 4, 8, 16, 32, 64, 128, 256]
     assert max(cfg.spp) < cfg.converged_spp < cfg.ref_spp
+    assert cfg.ref_floor_target and cfg.ref_spp_max >= 8 * cfg.ref_spp  # references refined where they are noisy
     assert sum(s.startswith("file:") for s in cfg.scenes) >= 3
     assert all(int(s.split(":")[1]) >= 900000 for s in cfg.scenes if s.startswith("random:"))  # far from training
 

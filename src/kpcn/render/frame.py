@@ -37,6 +37,7 @@ def render_frame(
     loaded=None,
     params: Mapping[str, Any] | None = None,
     albedo_only: bool = False,
+    first_pass: int = 0,
 ) -> Frame:
     """Render ``scene`` at ``spp`` samples per pixel into a :class:`~kpcn.io.Frame`.
 
@@ -54,6 +55,8 @@ def render_frame(
         albedo_only: trace only the first hit: ``albedo``, ``normal`` and ``depth`` (and their
             variances) as a full render with the same arguments writes them, the radiance layers 0
             (:mod:`kpcn.render.albedo`).
+        first_pass: index of the first pass's seed. A frame of passes ``0 … k-1`` and one of the same seed and role
+            from ``first_pass=k`` have independent samples (:func:`extend_frame` merges them).
 
     Returns:
         Frame with ``color``, ``diffuse``, ``specular``, ``albedo``, ``normal``,
@@ -78,7 +81,7 @@ def render_frame(
     acc = None
     t0 = time.perf_counter()
     for i, n in enumerate(passes):
-        img = mi.render(mi_scene, integrator=integrator, spp=n, seed=pass_seed(seed, role, i))
+        img = mi.render(mi_scene, integrator=integrator, spp=n, seed=pass_seed(seed, role, first_pass + i))
         arr = np.array(img, dtype=np.float64)
         if arr.shape[-1] != n_ch:
             raise RuntimeError(f"film returned {arr.shape[-1]} channels, expected {n_ch}")
@@ -111,3 +114,62 @@ def render_to_exr(scene: Any, out: str | os.PathLike, spp: int, seed: int = 0, *
     write_exr(out, frame.layers, frame.meta)
     frame.path = os.fspath(out)
     return frame
+
+
+def n_passes(spp: int, pass_spp: int = 256) -> int:
+    """How many passes :func:`render_frame` splits ``spp`` samples into."""
+    return -(-int(spp) // int(pass_spp))
+
+
+def merge_frames(a: Frame, b: Frame) -> Frame:
+    """One frame from two renders of the same view with independent samples.
+
+    Every layer is the spp-weighted mean; each ``<layer>Variance`` (variance of the pixel mean) is recomputed from
+    the two parts' per-sample second moments, as :func:`render_frame` computes it from the passes it adds up, so a
+    frame of passes ``0 … k-1`` merged with passes ``k … n-1`` is the frame of passes ``0 … n-1`` (to float32
+    rounding). Meta: ``a``'s, with ``spp`` the sum and ``renderTimeSeconds`` the sum of both.
+
+    Raises:
+        ValueError: the frames' layers or sizes differ.
+    """
+    if sorted(a.layers) != sorted(b.layers):
+        raise ValueError(f"frames to merge have different layers: {sorted(a.layers)} and {sorted(b.layers)}")
+    if a.shape != b.shape:
+        raise ValueError(f"frames to merge have different sizes: {a.shape} and {b.shape}")
+    na, nb = int(a.spp), int(b.spp)
+    n = na + nb
+    out: dict[str, np.ndarray] = {}
+    for name in a.layers:
+        if name.endswith("Variance"):
+            continue
+        ma, mb = a[name].astype(np.float64), b[name].astype(np.float64)
+        m = (na * ma + nb * mb) / n
+        out[name] = m.astype(np.float32)
+        vname = f"{name}Variance"
+        if vname in a.layers:
+            # per-sample second moments back from each part's variance of the mean: var = (m2 - m^2) / (n - 1)
+            m2 = (na * (a[vname].astype(np.float64) * (na - 1) + ma**2)
+                  + nb * (b[vname].astype(np.float64) * (nb - 1) + mb**2)) / n
+            out[vname] = np.maximum((m2 - m**2) / (n - 1), 0.0).astype(np.float32)
+    seconds = float(a.meta.get("renderTimeSeconds", 0.0)) + float(b.meta.get("renderTimeSeconds", 0.0))
+    meta = {**a.meta, "spp": n, "renderTimeSeconds": seconds}
+    return Frame(out, meta)
+
+
+def extend_frame(frame: Frame, scene: Any, spp: int, seed: int = 0, *, role: int = 0, pass_spp: int = 256,
+                 **kw) -> Frame:
+    """``frame`` (a :func:`render_frame` of ``seed`` and ``role``) with more samples: ``spp`` in all.
+
+    The added samples are the passes after ``frame``'s own (:func:`n_passes`), so they are independent of it, and
+    when ``frame.spp`` is a multiple of ``pass_spp`` the result is the direct render of ``spp`` samples. ``kw`` goes
+    to :func:`render_frame` (``resolution``, ``max_depth``, ``loaded``, ...).
+
+    Raises:
+        ValueError: ``spp`` is not above ``frame.spp``, or fewer than 2 samples would be added.
+    """
+    more = int(spp) - int(frame.spp)
+    if more < 2:
+        raise ValueError(f"extend_frame: {spp} spp is not at least 2 above the frame's {frame.spp}")
+    extra = render_frame(scene, more, seed, role=role, pass_spp=pass_spp, first_pass=n_passes(frame.spp, pass_spp),
+                         **kw)
+    return merge_frames(frame, extra)

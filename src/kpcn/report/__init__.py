@@ -19,8 +19,9 @@ far from the training data's), ``test:<name>`` (:func:`kpcn.scenes.list_test_sce
 ``file:<name>`` (the Mitsuba XML files shipped in ``kpcn/scenes/files/``,
 :func:`kpcn.scenes.list_scene_files`) or the path of any XML scene file.
 The default: 16 scenes (9 procedural, 3 test scenes, the 4 shipped files) at
-256x256, spp 2, 4, … 256, a 1024-spp converged input and a 2048-spp reference:
-about 100 minutes on a 2-core CPU (docs/measured.md).
+256x256, spp 2, 4, … 256, a 1024-spp converged input and a 2048-spp reference, refined
+up to 16384 spp where its own noise adds more than relMSE 0.0015 (``ref_floor_target``):
+about 130 minutes on a 2-core CPU (docs/measured.md).
 
 What it does, per scene:
 
@@ -29,7 +30,10 @@ What it does, per scene:
    high-spp reference (``role=1``: noise independent of the inputs), caching
    every render as an EXR in ``<out>/<name>/renders/<scene>/<W>x<H>-<scene fingerprint>/``
    (written atomically; a re-run reuses them, ``--rerender`` forces new ones; the
-   fingerprint changes when the scene's content does). Before the first timed
+   fingerprint changes when the scene's content does). A reference whose own
+   noise adds more relMSE than ``ref_floor_target`` keeps its samples and gets
+   more (:func:`refined_spp`, :func:`kpcn.render.extend_frame`), cached as
+   ``reference_<spp>spp_seed<seed>.exr`` beside the first. Before the first timed
    render of a scene one untimed 2-spp render compiles Mitsuba's kernels, so
    render seconds are the wall time of the sampling, as ``renderTimeSeconds`` says;
 2. evaluates raw MC, each model (``kpcn.denoise`` on the in-memory
@@ -83,10 +87,9 @@ from .analysis import (
     is_ref_limited,
     mc_spp_for_error,
     mean_table,
-    reference_floor,
     render_time_model,
 )
-from .cache import SceneRenders, render_scene, scene_label, scene_slug, scene_source
+from .cache import SceneRenders, reference_floor, refined_spp, render_scene, scene_label, scene_slug, scene_source
 from .checks import (
     CONVERGED_FIELDS,
     against_oidn,
@@ -125,7 +128,7 @@ __all__ = [
     "against_oidn", "build_methods", "build_summary", "contact_sheet", "converged_table", "equal_time",
     "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_scene", "fitted_slope",
     "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "model_method",
-    "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "render_scene",
-    "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
+    "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "refined_spp",
+    "render_scene", "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
     "worse_with_more_samples", "write_csv", "write_outputs",
 ]

@@ -7,9 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..io import Frame
 from ..metrics import all_metrics
-from .cache import SceneRenders
+from .cache import SceneRenders, reference_floor
 from .config import MC, METRICS, TIMES
 from .methods import Method
 
@@ -46,15 +45,6 @@ def evaluate_scene(sr: SceneRenders, methods: Sequence[Method], keep_spp: int | 
             if spp == keep_spp:
                 images[name] = img
     return rows, images
-
-
-def reference_floor(ref: Frame) -> float | None:
-    """relMSE the reference's own noise adds: mean(colorVariance / (ref² + 0.01)), or None without variance."""
-    var = ref.get("colorVariance")
-    if var is None:
-        return None
-    c = ref["color"].astype(np.float64)
-    return float(np.mean(np.broadcast_to(var, c.shape) / (c**2 + 1e-2)))
 
 
 def is_ref_limited(relmse: float, floor: float | None, factor: float) -> bool:

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from ..io import Frame, read_exr, write_exr
 from ..render.cycles import cycles_seed  # Cycles' seed for a report render: per seed and role
 from ..render.cycles_scene import generated_variant, is_generated
@@ -79,6 +81,25 @@ def _cached(path: Path, spp: int, resolution: tuple[int, int]) -> Frame | None:
     return fr
 
 
+def reference_floor(ref: Frame) -> float | None:
+    """relMSE the reference's own noise adds: mean(colorVariance / (ref² + 0.01)), or None without variance."""
+    var = ref.get("colorVariance")
+    if var is None:
+        return None
+    c = ref["color"].astype(np.float64)
+    return float(np.mean(np.broadcast_to(var, c.shape) / (c**2 + 1e-2)))
+
+
+def refined_spp(spp: int, floor: float, target: float, most: int) -> int:
+    """The reference spp a floor of ``floor`` at ``spp`` samples is refined to: ``spp`` doubled until the floor,
+    falling as ``1/spp``, is predicted at or below ``target``, and no further than ``most``; ``spp`` itself when
+    the floor is already there or no doubling fits."""
+    want = spp
+    while floor * spp / want > target and want * 2 <= most:
+        want *= 2
+    return want
+
+
 def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
     """What to render and its fingerprint: ``(dict or path, 12 hex digits)``.
 
@@ -141,6 +162,14 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
     frames: dict[Path, Frame] = {}
     rendered: list[str] = []
     loaded = for_albedo = None
+
+    def scene_loaded():
+        nonlocal loaded
+        if loaded is None:
+            loaded = load_scene(source, cfg.resolution)
+            # untimed warm-up: the first render of a scene compiles its kernels (~2 s)
+            render_frame(source, 2, cfg.seed, cfg.resolution, role=WARMUP_ROLE, loaded=loaded, max_depth=cfg.max_depth)
+        return loaded
     for spp, path, role in jobs:
         fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
         outdated = [] if fr is None or is_cycles(scene) else outdated_first_hit(fr)
@@ -162,11 +191,8 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
             rendered.append(str(path))
             progress(f"rendered {scene_label(scene)} {spp} spp with Cycles in {done.seconds:.2f} s")
         if fr is None:
-            if loaded is None:
-                loaded = load_scene(source, cfg.resolution)
-                # untimed warm-up: the first render of a scene compiles its kernels (~2 s)
-                render_frame(source, 2, cfg.seed, cfg.resolution, role=WARMUP_ROLE, loaded=loaded, max_depth=cfg.max_depth)
-            fr = render_frame(source, spp, cfg.seed, cfg.resolution, role=role, loaded=loaded, max_depth=cfg.max_depth)
+            fr = render_frame(source, spp, cfg.seed, cfg.resolution, role=role, loaded=scene_loaded(),
+                              max_depth=cfg.max_depth)
             fr.meta["scene"] = scene_label(scene)
             write_exr(path, fr.layers, fr.meta)
             fr.path = str(path)
@@ -175,4 +201,46 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
         frames[path] = fr
     inputs = {s: frames[p] for s, p, _ in jobs[:n_inputs]}
     converged = frames[jobs[n_inputs][1]] if cfg.converged_spp else None
-    return SceneRenders(scene, scene_label(scene), inputs, frames[jobs[-1][1]], rendered, converged)
+    reference = frames[jobs[-1][1]]
+    if cfg.ref_floor_target is not None and not is_cycles(scene):
+        reference = _refined_reference(cfg, scene, source, folder, reference, scene_loaded, rendered, progress)
+    return SceneRenders(scene, scene_label(scene), inputs, reference, rendered, converged)
+
+
+def _refined_reference(cfg: ReportConfig, scene: Any, source: Any, folder: Path, ref: Frame,
+                       scene_loaded: Callable, rendered: list[str], progress: Callable[[str], None]) -> Frame:
+    """``ref`` with more samples while its floor is above ``cfg.ref_floor_target`` (:func:`refined_spp`).
+
+    Each refined reference is cached as ``reference_<spp>spp_seed<seed>.exr`` beside the first; a larger one is
+    built on the largest cached one below it (its samples are kept: the added passes follow its own), so a run
+    killed while refining loses at most the refinement under way.
+    """
+    from ..render import extend_frame
+    from ..render.albedo import outdated_first_hit
+
+    while True:
+        floor = reference_floor(ref)
+        if floor is None:
+            return ref
+        want = refined_spp(ref.spp, floor, cfg.ref_floor_target, cfg.ref_spp_max)
+        if want == ref.spp:
+            return ref
+        base, spp = ref, ref.spp * 2
+        while spp <= want:  # the largest cached refinement on the way, each built on the ones before it
+            path = folder / f"reference_{spp}spp_seed{cfg.seed}.exr"
+            fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
+            if fr is not None and not outdated_first_hit(fr):
+                base = fr
+            spp *= 2
+        if base.spp < want:
+            path = folder / f"reference_{want}spp_seed{cfg.seed}.exr"
+            before = base.spp
+            base = extend_frame(base, source, want, cfg.seed, role=1, resolution=cfg.resolution,
+                                loaded=scene_loaded(), max_depth=cfg.max_depth)
+            base.meta["scene"] = scene_label(scene)
+            write_exr(path, base.layers, base.meta)
+            base.path = str(path)
+            rendered.append(str(path))
+            progress(f"refined the reference of {scene_label(scene)} from {before} to {want} spp (its noise: relMSE "
+                     f"{floor:.5f}, target {cfg.ref_floor_target})")
+        ref = base

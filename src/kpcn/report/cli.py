@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 
@@ -12,6 +13,19 @@ from .config import DEFAULT_SCENES, ReportConfig
 from .run import run_report
 
 
+class _NoTarget:
+    """``--ref-floor-target none``: set to None (an unset flag is None too, and keeps the default)."""
+
+
+def _target(value: str):
+    if value.strip().lower() in ("none", "off", "0"):
+        return _NoTarget
+    try:
+        return float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a relMSE such as 0.0015, or none; got {value!r}") from None
+
+
 def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p = argparse.ArgumentParser(prog="python -m kpcn.report", description=_package_doc.split("\n\n")[0])
     add_config_args(p)
@@ -19,6 +33,10 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
                    f"{' '.join('file:' + n for n in list_scene_files())}) (default: {' '.join(DEFAULT_SCENES)})")
     p.add_argument("--spp", type=int, nargs="+", help="input spp ladder, each >= 2 (default: 2 4 8 16 32 64 128 256)")
     p.add_argument("--ref-spp", type=int, help="reference spp (default: 2048)")
+    p.add_argument("--ref-floor-target", type=_target,
+                   help="give a reference more samples (its spp doubled, its samples kept) while its own noise adds "
+                        "more relMSE than this; 'none' for none (default: 0.0015)")
+    p.add_argument("--ref-spp-max", type=int, help="the most samples a refined reference gets (default: 16384)")
     p.add_argument("--converged-spp", type=int,
                    help="spp of the converged input every method is also run on, 0 for none (default: 1024)")
     p.add_argument("--floor-factor", type=float,
@@ -42,7 +60,9 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("-q", "--quiet", action="store_true", help="print only the Markdown summary")
     a = p.parse_args(argv)
     flags = {
-        "scenes": a.scenes, "spp": a.spp, "ref_spp": a.ref_spp, "converged_spp": a.converged_spp,
+        "scenes": a.scenes, "spp": a.spp, "ref_spp": a.ref_spp,
+        "ref_floor_target": None if a.ref_floor_target is _NoTarget else a.ref_floor_target,
+        "ref_spp_max": a.ref_spp_max, "converged_spp": a.converged_spp,
         "floor_factor": a.floor_factor, "resolution": a.resolution, "models": a.models,
         "out": a.out, "name": a.name, "seed": a.seed, "device": a.device, "tile": a.tile, "repeats": a.repeats,
         "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
@@ -50,6 +70,8 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
         "trust_checkpoint": True if a.trust_checkpoint else None,
     }
     cfg = config_from_args(ReportConfig, a, flags, defaults=ReportConfig.QUICK if a.quick else None)
+    if a.ref_floor_target is _NoTarget:
+        cfg = dataclasses.replace(cfg, ref_floor_target=None)
     return cfg, a
 
 

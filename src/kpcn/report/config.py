@@ -41,12 +41,19 @@ class ReportConfig:
     """What to render and compare. ``resolution`` is ``(width, height)``.
 
     The defaults (16 scenes at 256x256, spp 2 … 256, 1024-spp converged inputs,
-    2048-spp references) take about 100 minutes on a 2-core CPU (docs/measured.md).
+    2048-spp references, refined up to 16384 spp where their own noise is above relMSE 0.0015) take about
+    130 minutes on a 2-core CPU (docs/measured.md).
     """
 
     scenes: list[Any] = field(default_factory=lambda: list(DEFAULT_SCENES))
     spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32, 64, 128, 256])
     ref_spp: int = 2048
+    #: a reference whose own noise adds more relMSE than this (:func:`~kpcn.report.cache.reference_floor`) gets
+    #: more samples: its passes are kept and more are added (:func:`kpcn.render.extend_frame`), doubling its spp as
+    #: often as the floor's ``1/spp`` fall predicts the target needs, up to ``ref_spp_max``. None: ``ref_spp`` for
+    #: every scene. Blender Cycles references are not refined
+    ref_floor_target: float | None = 0.0015
+    ref_spp_max: int = 16384
     converged_spp: int = 1024  #: spp of the converged input every method is also run on (0: none)
     resolution: tuple[int, int] = (256, 256)
     models: list[str] = field(default_factory=lambda: ["unet_kpcn", "mskpcn", "kpcn", "dpcn"])
@@ -72,7 +79,7 @@ class ReportConfig:
     #: the ``--quick`` preset: three 24x24 scenes (one shipped XML file), spp 2 4 8, 32-spp converged
     #: input, 128-spp reference
     QUICK = {"scenes": ["random:900003", "test:textured", "file:material_test"], "spp": [2, 4, 8], "ref_spp": 128,
-             "converged_spp": 32, "resolution": [24, 24], "name": "quick"}
+             "ref_floor_target": None, "converged_spp": 32, "resolution": [24, 24], "name": "quick"}
 
     @classmethod
     def quick(cls, **overrides) -> "ReportConfig":
@@ -86,6 +93,10 @@ class ReportConfig:
             raise ValueError(f"every spp must be >= 2 (variances need two samples), got {self.spp}")
         if self.ref_spp < 2:
             raise ValueError(f"ref_spp must be >= 2, got {self.ref_spp}")
+        if self.ref_floor_target is not None and not self.ref_floor_target > 0:
+            raise ValueError(f"ref_floor_target must be > 0 (or None: no refinement), got {self.ref_floor_target}")
+        if self.ref_floor_target is not None and self.ref_spp_max < self.ref_spp:
+            raise ValueError(f"ref_spp_max ({self.ref_spp_max}) is below ref_spp ({self.ref_spp})")
         if self.converged_spp and self.converged_spp < 2:
             raise ValueError(f"converged_spp must be 0 (none) or >= 2, got {self.converged_spp}")
         if self.ref_spp <= max(self.spp):

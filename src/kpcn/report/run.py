@@ -98,6 +98,8 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
         "mean_relmse_median": {m: {str(r["spp"]): r["relmse_median"] for r in means if r["method"] == m}
                                for m in dict.fromkeys(r["method"] for r in means)},
         "ref_limited_rows": sum(bool(r.get("ref_limited")) for r in rows),
+        #: each scene's reference spp (above ``ref_spp`` where ``ref_floor_target`` refined it) and its noise
+        "reference": {r["scene"]: {"spp": int(r["ref_spp"]), "floor_relmse": r["ref_floor"]} for r in rows},
         "equal_time": list(eq),
         "equal_time_headline": equal_time_headline(eq),
         "against_oidn": against_oidn(means, rows),

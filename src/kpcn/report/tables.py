@@ -178,6 +178,17 @@ def _more_samples_markdown(worse: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+def _refined(summary: dict) -> str:
+    """The header's words on references given more samples (``ref_floor_target``)."""
+    cfg, refs = summary["config"], summary.get("reference", {})
+    if not cfg.get("ref_floor_target"):
+        return ""
+    more = {s: r["spp"] for s, r in refs.items() if r["spp"] > cfg["ref_spp"]}
+    which = ", ".join(f"{s} {n}" for s, n in more.items()) or "none"
+    return (f", given more samples (up to {cfg['ref_spp_max']}) where its own noise adds more than relMSE "
+            f"{cfg['ref_floor_target']:g}: {which}")
+
+
 def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[dict], summary: dict) -> str:
     """The full Markdown report (printed up to the per-scene table: equal time first)."""
     cfg = summary["config"]
@@ -188,7 +199,8 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
         f"# kpcn report: {cfg['name']}",
         "",
         f"{len(summary['scenes'])} scenes at {cfg['resolution'][0]}×{cfg['resolution'][1]}, "
-        f"spp {', '.join(map(str, cfg['spp']))}{conv}, reference {cfg['ref_spp']} spp (independent seeds). "
+        f"spp {', '.join(map(str, cfg['spp']))}{conv}, reference {cfg['ref_spp']} spp (independent seeds)"
+        f"{_refined(summary)}. "
         f"Methods: {', '.join(_with_cost(m, summary) for m in summary['methods'])}.",
         "",
         "Times: render seconds are the wall time of the sampling (kernels compiled by an untimed warm-up render); "
