@@ -48,7 +48,9 @@ def test_detail_stage_trains_and_validates_the_pipelines_output(tiny_dataset, tm
     got = out["color"][0].permute(1, 2, 0).numpy()
     assert abs(got - want).max() <= 1e-4 * max(1.0, float(abs(want).max()))
     assert (out["color"] - raw["color"]).abs().max() > 1e-4  # the stage did something on this frame
-    assert validate(model, frames, "cpu", detail=True)["relmse"] != validate(model, frames, "cpu")["relmse"]
+    kept: list = []
+    assert validate(model, frames, "cpu", detail=True, keep=kept)["relmse"] != validate(model, frames, "cpu")["relmse"]
+    torch.testing.assert_close(kept[0], out["color"][0])  # TensorBoard's image: the colour validation scored
 
     ds = PatchDataset(pairs, 24, 8, seed=1, label_spp=True)
     batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])

@@ -284,13 +284,13 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         if done % cfg.train.ckpt_every == 0 or done == total:
             checkpoint(done)
         if d.main and len(val) and (done % cfg.train.val_every == 0 or done == total):
-            last_val = validate(ddp, val, d.device, cfg.train.detail_stage)
+            first: list = []  # the first frame's colour as validation scored it (after the stage, in eval mode)
+            last_val = validate(ddp, val, d.device, cfg.train.detail_stage, keep=first)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, done)
             f = val[0]
-            with torch.no_grad():
-                pred = model({k: v[None].to(d.device) for k, v in model_inputs(model, f).items()})["color"][0].cpu()
-            writer.add_images("val/noisy_denoised_reference", torch.stack([_tonemap_t(f["noisy_color"]), _tonemap_t(pred), _tonemap_t(f["y_color"])]), done)
+            shown = [_tonemap_t(f["noisy_color"]), _tonemap_t(first[0]), _tonemap_t(f["y_color"])]
+            writer.add_images("val/noisy_denoised_reference", torch.stack(shown), done)
             line = json.dumps({"step": done, **last_val})
             with open(run / "metrics.jsonl", "a") as fh:
                 fh.write(line + "\n")

@@ -198,9 +198,11 @@ def batches(ds: PatchDataset, cfg: RunConfig, d: Dist, start_step: int):
 
 
 @torch.no_grad()
-def validate(model, frames: FrameDataset, device, detail: bool = False) -> dict[str, float]:
+def validate(model, frames: FrameDataset, device, detail: bool = False,
+             keep: list | None = None) -> dict[str, float]:
     """Mean metrics of the full-frame reconstruction over the validation frames (``detail``: after the model's
-    detail stage, :func:`with_detail`)."""
+    detail stage, :func:`with_detail`). ``keep``: a list the first frame's colour ``(C, H, W)`` (the one the
+    metrics saw) is appended to, for TensorBoard."""
     model.eval()
     sums: dict[str, float] = {}
     for i in range(len(frames)):
@@ -209,6 +211,8 @@ def validate(model, frames: FrameDataset, device, detail: bool = False) -> dict[
         out = _unwrap(model)(inputs)
         if detail:
             out = with_detail(model, out, {k: f[k][None].to(device) for k in ("noisy_color", "noisy_normal")})
+        if keep is not None and i == 0:
+            keep.append(out["color"][0].cpu())
         pred = out["color"][0].permute(1, 2, 0).cpu().numpy()
         ref = f["y_color"].permute(1, 2, 0).numpy()
         for k, v in all_metrics(pred, ref).items():
