@@ -429,6 +429,16 @@ def test_against_oidn_marks_each_spp(report):
     assert sum(line.startswith("| kpcn |") for line in md.splitlines()) == len(cfg.spp)
 
 
+def test_near_ties_print_digits_that_tell_them_apart():
+    """A mark beside two numbers that print alike says nothing: as many digits as it takes (up to 8)."""
+    from kpcn.report.tables import distinct_pair
+
+    assert distinct_pair(0.0024317, 0.0024324, "g", 4) == "0.0024317 / 0.0024324"  # the s30 report's 64-spp tie
+    assert distinct_pair(0.9289766, 0.9289752, "f", 4) == "0.928977 / 0.928975"
+    assert distinct_pair(41.857, 41.769, "f", 2) == "41.86 / 41.77"  # distinct already: as before
+    assert distinct_pair(0.5, 0.5, "f", 4) == "0.5000 / 0.5000"  # equal values stay short
+
+
 def test_xml_scene_file_renders_through_the_report(report):
     cfg, res = report
     label = "file:material_test"

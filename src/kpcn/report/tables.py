@@ -108,13 +108,24 @@ def _mark(ok: bool) -> str:
     return "✓" if ok else "✗"
 
 
+def distinct_pair(a: float, b: float, kind: str, digits: int, most: int = 8) -> str:
+    """``"a / b"`` formatted with ``digits`` (``kind`` ``g``: significant digits, ``f``: decimals), or with as many
+    more as it takes, up to ``most``, for two different values not to print the same (a ✓ or ✗ beside two equal
+    numbers says nothing)."""
+    for d in range(digits, max(digits, most) + 1):
+        x, y = format(a, f".{d}{kind}"), format(b, f".{d}{kind}")
+        if x != y or a == b:
+            break
+    return f"{x} / {y}"
+
+
 def _oidn_markdown(vs: Sequence[dict]) -> str:
     if not vs:
         return "No OIDN rows: no comparison."
     rows = [{"method": v["method"], "spp": v["spp"],
-             "r": f"{_mark(v['relmse_ok'])} {v['relmse']:.4g} / {v['oidn_relmse']:.4g}",
-             "p": f"{_mark(v['psnr_ok'])} {v['psnr']:.2f} / {v['oidn_psnr']:.2f}",
-             "s": f"{_mark(v['ssim_ok'])} {v['ssim']:.4f} / {v['oidn_ssim']:.4f}",
+             "r": f"{_mark(v['relmse_ok'])} {distinct_pair(v['relmse'], v['oidn_relmse'], 'g', 4)}",
+             "p": f"{_mark(v['psnr_ok'])} {distinct_pair(v['psnr'], v['oidn_psnr'], 'f', 2)}",
+             "s": f"{_mark(v['ssim_ok'])} {distinct_pair(v['ssim'], v['oidn_ssim'], 'f', 4)}",
              "all": "**yes**" if v["beats_oidn"] else "no", "won": f"{v['scenes_won_relmse']}/{v['scenes']}"}
             for v in vs]
     return ("Means over scenes, model / OIDN. *Beats OIDN* only when relMSE ≤, PSNR ≥ and SSIM ≥ all hold.\n\n"
