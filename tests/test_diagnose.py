@@ -52,6 +52,12 @@ def test_cli_reads_a_renders_folder_and_refuses_an_empty_one(net, render, tmp_pa
     write_exr(folder / "reference_256spp_seed0.exr",
               render("test:textured", spp=256, seed=2, role=1, resolution=RES).layers)
     assert [s.scene for s in find_renders(str(tmp_path / "renders"))] == ["test_textured"]
+    # a refined reference beside the first is the one used: the most samples, not the first name in order
+    for name in ("reference_1024spp_seed0.exr", "reference_512spp_seed0.exr"):
+        (folder / name).write_bytes((folder / "reference_256spp_seed0.exr").read_bytes())
+    assert find_renders(str(tmp_path / "renders"))[0].reference().endswith("reference_1024spp_seed0.exr")
+    (folder / "reference_1024spp_seed0.exr").unlink()
+    assert find_renders(str(tmp_path / "renders"))[0].reference().endswith("reference_512spp_seed0.exr")
     assert main(["--renders", str(tmp_path / "renders"), "--spp", "4", "8", "--no-oidn"]) == 0
     out = capsys.readouterr().out
     assert "| test_textured | 0.0" in out and "| mean |" in out and "no 8-spp input" in out

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import glob
 import os
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,8 +107,15 @@ class SceneFiles:
         return found[0] if found else None
 
     def reference(self) -> str | None:
-        found = sorted(glob.glob(os.path.join(self.folder, "reference_*.exr")))
-        return found[0] if found else None
+        """The reference with the most samples (a refined one, ``ReportConfig.ref_floor_target``, over the first)."""
+        found = glob.glob(os.path.join(self.folder, "reference_*.exr"))
+        return max(found, key=lambda p: (_spp_of(p), p), default=None)
+
+
+def _spp_of(path: str) -> int:
+    """The sample count in a report render's name (``reference_4096spp_seed0.exr``: 4096), -1 without one."""
+    m = re.match(r"[a-z]+_(\d+)spp", os.path.basename(path))
+    return int(m.group(1)) if m else -1
 
 
 def find_renders(root: str) -> list[SceneFiles]:
