@@ -176,16 +176,48 @@ def test_only_frames_whose_record_differs_are_rerendered(mi, tmp_path, monkeypat
     inp, ref = root / "random_0" / "input_2spp.exr", root / "random_0" / "reference.exr"
     before = mtimes([inp])
     calls = counting_render(monkeypatch)
-    render_dataset(root, 1, **{**SMALL, "ref_spp": 6})
+    render_dataset(root, 1, **{**SMALL, "ref_spp": 3})  # fewer samples than it has: rendered again
     assert [c[1] for c in calls] == [str(ref)] and mtimes([inp]) == before
-    assert read_exr(ref).meta["spp"] == 6
+    assert read_exr(ref).meta["spp"] == 3
 
     # a frame without a record (another tool, an older kpcn) is not trusted
     f = read_exr(inp)
     write_exr(inp, f.layers, {k: f.meta[k] for k in ("spp", "seed", "scene")})
     calls.clear()
-    render_dataset(root, 1, **{**SMALL, "ref_spp": 6})
+    render_dataset(root, 1, **{**SMALL, "ref_spp": 3})
     assert [c[1] for c in calls] == [str(inp)]
+
+
+def test_a_reference_given_more_samples_keeps_its_own(mi, tmp_path, monkeypatch, caplog):
+    """A larger ref_spp for a data set whose references differ only in spp: each reference keeps its samples and
+    gets the following passes (kpcn.render.extend_frame), so an upgrade costs only the samples added; the inputs
+    are untouched and the records and manifest say the new spp."""
+    from kpcn.render import merge_frames, render_frame
+    from kpcn.render.record import read_record
+
+    root = tmp_path / "data"
+    render_dataset(root, 1, **SMALL)
+    inp, ref = root / "random_0" / "input_2spp.exr", root / "random_0" / "reference.exr"
+    before, old = mtimes([inp]), read_exr(ref)
+    calls = counting_render(monkeypatch)
+    with caplog.at_level(logging.INFO, logger="kpcn.render"):
+        render_dataset(root, 1, **{**SMALL, "ref_spp": 12})
+    assert calls == [] and mtimes([inp]) == before
+    assert any("adding 8 samples" in r.getMessage() and "4 -> 12 spp" in r.getMessage() for r in caplog.records)
+    new = read_exr(ref)
+    assert new.spp == 12 and read_record(ref)[0]["spp"] == 12
+    # its first 4 samples are the old reference's: the mean of it and the next passes (seed 0, role 1, from pass 1)
+    rest = render_frame("random:0", 8, 0, (8, 8), role=1, first_pass=1)
+    want = merge_frames(old, rest)
+    np.testing.assert_allclose(new["color"], want["color"], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(new["colorVariance"], want["colorVariance"], rtol=1e-3, atol=1e-8)
+    assert not np.allclose(new["color"], old["color"])
+    m = json.loads((root / "manifest.json").read_text())
+    assert m["complete"] is True and m["ref_spp"] == 12
+    assert m["scenes"][0]["frames"]["random_0/reference.exr"]["spp"] == 12
+    calls.clear()
+    render_dataset(root, 1, **{**SMALL, "ref_spp": 12})  # up to date: nothing rendered or extended
+    assert calls == [] and read_exr(ref).meta["renderTimeSeconds"] == new.meta["renderTimeSeconds"]
 
 
 def as_older_revision(root, key, value):

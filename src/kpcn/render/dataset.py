@@ -19,14 +19,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from ..io import atomic_write
+from ..io import atomic_write, read_exr, write_exr
 from . import manifest as mf
-from .frame import render_to_exr
+from .frame import extend_frame, render_to_exr
 from .manifest import DatasetError, DatasetStatus, dataset_status
 from .cycles_scene import GENERATED, generated_variant, is_generated
 from ..integrator import ALBEDO_REVISION, NORMAL_REVISION
 from .albedo import update_first_hit
-from .record import HEADER_KEY, first_hit_differences, frame_record, scene_identity, stale_reason
+from .record import HEADER_KEY, fewer_samples, first_hit_differences, frame_record, scene_identity, stale_reason
 from .scene import load_scene
 
 log = logging.getLogger("kpcn.render")
@@ -89,7 +89,6 @@ def _cycles_frame(scene: str, path: Path, spp: int, seed: int, role: int, resolu
     """One frame of kpcn's generated Cycles scene (``cycles:generated[:<N>]``), stored in the contract layout
     (the Cycles passes mapped to colour, diffuse, specular, albedo, normal, depth: no variances) with its
     render record."""
-    from ..io import read_exr, write_exr
     from .cycles import cycles_seed, render_cycles
 
     variant = generated_variant(scene)
@@ -125,7 +124,11 @@ def render_dataset(
     Frames already on disk are kept when their render record (resolution, spp,
     seed, role, scene source and fingerprint, ...) equals what would be
     rendered now — so an interrupted run resumes — and rendered again
-    otherwise, with one logged line per frame naming what differed. Before the
+    otherwise, with one logged line per frame naming what differed; a frame
+    that differs only in having fewer samples (a larger ``ref_spp`` for the
+    same data set) keeps them and gets the passes that follow
+    (:func:`kpcn.render.extend_frame`): raising ``ref_spp`` costs only the
+    samples added. Before the
     first frame is changed the manifest says ``"complete": false`` (with the
     new settings and the scenes finished so far); ``"complete": true`` is
     written after the last scene. Files of an earlier data set that the new
@@ -195,6 +198,15 @@ def render_dataset(
                     loaded = loaded or load_scene(to_render, resolution)
                     update_first_hit(path, to_render, s, seed, role=noise_role, which=first_hit, resolution=resolution,
                                      pass_spp=PASS_SPP, loaded=loaded, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
+                    entry["frames"][path.relative_to(out).as_posix()] = rec
+                    continue
+                had = None if is_generated(sc) else fewer_samples(path, rec)
+                if had is not None:  # a frame of the same render with fewer samples: its passes kept, more added
+                    log.info("adding %d samples to %s (%d -> %d spp)", s - had, path, had, s)
+                    loaded = loaded or load_scene(to_render, resolution)
+                    more = extend_frame(read_exr(path), to_render, s, seed, role=noise_role, pass_spp=PASS_SPP,
+                                        loaded=loaded, max_depth=MAX_DEPTH)
+                    write_exr(path, more.layers, {**more.meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
                     entry["frames"][path.relative_to(out).as_posix()] = rec
                     continue
                 if reason != "missing":

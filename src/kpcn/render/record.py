@@ -191,6 +191,23 @@ def first_hit_differences(path: Path, want: dict) -> list[str]:
     return diff if diff and set(diff) <= set(FIRST_HIT) else []
 
 
+def fewer_samples(path: Path, want: dict) -> int | None:
+    """The spp of the frame at ``path`` when it differs from the record ``want`` only in having fewer samples
+    (the same seed, noise role and pass size: its passes are the first of ``want``'s, so
+    :func:`kpcn.render.extend_frame` can add the rest); None otherwise."""
+    try:
+        have, size = read_record(path)
+    except Exception:
+        return None
+    if have is None:
+        return None
+    diff = _differences(have, size, want)
+    spp = have.get("spp")
+    if set(diff) == {"spp"} and isinstance(spp, int) and 2 <= spp < int(want["spp"]):
+        return spp
+    return None
+
+
 def stale_reason(path: Path, want: dict) -> str | None:
     """Why the frame at ``path`` cannot be reused for the record ``want``; None when it can."""
     if not path.exists():
