@@ -21,7 +21,7 @@ far from the training data's), ``test:<name>`` (:func:`kpcn.scenes.list_test_sce
 The default: 16 scenes (9 procedural, 3 test scenes, the 4 shipped files) at
 256x256, spp 2, 4, … 256, a 1024-spp converged input and a 2048-spp reference, refined
 up to 16384 spp where its own noise adds more than relMSE 0.0015 (``ref_floor_target``):
-about 130 minutes on a 2-core CPU (docs/measured.md).
+about 135 minutes on a 2-core CPU (docs/measured.md).
 
 What it does, per scene:
 

@@ -42,7 +42,7 @@ class ReportConfig:
 
     The defaults (16 scenes at 256x256, spp 2 … 256, 1024-spp converged inputs,
     2048-spp references, refined up to 16384 spp where their own noise is above relMSE 0.0015) take about
-    130 minutes on a 2-core CPU (docs/measured.md).
+    135 minutes on a 2-core CPU (docs/measured.md).
     """
 
     scenes: list[Any] = field(default_factory=lambda: list(DEFAULT_SCENES))
