@@ -177,17 +177,22 @@ def _differences(have: dict, size, want: dict) -> dict:
     return diff
 
 
+def _record_differences(path: Path, want: dict) -> tuple[dict, dict] | None:
+    """The record of the frame at ``path`` and how it differs from ``want`` (:func:`_differences`); None when the
+    file is unreadable or has no record."""
+    try:
+        have, size = read_record(path)
+    except Exception:
+        return None
+    return None if have is None else (have, _differences(have, size, want))
+
+
 def first_hit_differences(path: Path, want: dict) -> list[str]:
     """The first-hit layers (``"albedo"``, ``"normal"``) whose revision alone makes the frame at ``path``
     differ from the record ``want`` (it can be brought up to date by
     :func:`kpcn.render.albedo.update_first_hit` rather than rendered again); [] when anything else differs."""
-    try:
-        have, size = read_record(path)
-    except Exception:
-        return []
-    if have is None:
-        return []
-    diff = list(_differences(have, size, want))
+    found = _record_differences(path, want)
+    diff = list(found[1]) if found else []
     return diff if diff and set(diff) <= set(FIRST_HIT) else []
 
 
@@ -195,13 +200,10 @@ def fewer_samples(path: Path, want: dict) -> int | None:
     """The spp of the frame at ``path`` when it differs from the record ``want`` only in having fewer samples
     (the same seed, noise role and pass size: its passes are the first of ``want``'s, so
     :func:`kpcn.render.extend_frame` can add the rest); None otherwise."""
-    try:
-        have, size = read_record(path)
-    except Exception:
+    found = _record_differences(path, want)
+    if found is None:
         return None
-    if have is None:
-        return None
-    diff = _differences(have, size, want)
+    have, diff = found
     spp = have.get("spp")
     if set(diff) == {"spp"} and isinstance(spp, int) and 2 <= spp < int(want["spp"]):
         return spp
