@@ -19,6 +19,10 @@
 # (twenty-second) 88 MB, with unet_wide64c (twenty-third) 97 MB: move every weights file but INIT's aside for the
 # call, `bash scripts/gpu_weights.sh hold`
 # (and `restore` after it).
+# EXTRA="NAME=CONFIG ..." trains more models beside it on the same scenes, to the same deadline, each from its
+# CONFIG's model and train sections (from scratch unless that config names train.init; its data.patch_size kept, its
+# train.batch_size unless EXTRA_BATCH; peak rate EXTRA_LR, default 2e-4): weights, configs and logs go to $OUT/NAME/.
+# They share the GPU and the cores with the main run, which then takes fewer steps (each pace is measured under load).
 # Locally, as a dry run: PY=.venv/bin/python NO_SITE=1 KPCN_MITSUBA_VARIANT=llvm_ad_rgb RES=48 SPP="2 4" REF=16
 #   PROCS=2 RENDER_S=30 BUDGET=300 BATCH=2 PATCH=32 W=/tmp/gt bash scripts/gpu_train.sh
 set -u
@@ -81,43 +85,72 @@ yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)
 EOF
 cp "$W/cfg.yaml" "$OUT/cfg.yaml"
 
-# 3. probe: train to step PROBE, measure the pace between checkpoints 100 and PROBE
-TR="$PY -m kpcn.train -c $W/cfg.yaml --name g --results-dir $W/r --no-progress"
-CK=$W/r/g/checkpoints
-rm -rf "$W/r/g"  # a previous call's run on a machine still warm: its checkpoints would end the probe at once
-$TR --overwrite >"$W/train1.log" 2>&1 &
-P=$!
-while [ ! -f "$CK/step_$PROBE.pt" ]; do
-  kill -0 $P 2>/dev/null || { echo "probe run ended early"; tail -20 "$W/train1.log"; cp "$W/train1.log" "$OUT/"; exit 6; }
-  [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 60)) ] && { echo "probe too slow: stopping"; SLOW=1; break; }
+# 3. each run: a probe to step PROBE (the pace between checkpoints 100 and PROBE, measured with every run going),
+# then --resume with the fitted schedule; the deadline stops whatever is still going
+fit() {  # NAME CFG DEST
+  local N=$1 CFG=$2 D=$3 P= NSTEPS=0 SLOW= PACE
+  local TR="$PY -m kpcn.train -c $CFG --name $N --results-dir $W/r --no-progress" CK=$W/r/$N/checkpoints
+  mkdir -p "$D"
+  rm -rf "$W/r/$N"  # a previous call's run on a machine still warm: its checkpoints would end the probe at once
+  $TR --overwrite >"$D/train1.log" 2>&1 &
+  P=$!
+  while [ ! -f "$CK/step_$PROBE.pt" ]; do
+    kill -0 $P 2>/dev/null || { echo "$N: probe run ended early"; tail -20 "$D/train1.log"; return 6; }
+    [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 60)) ] && { echo "$N: probe too slow: stopping"; SLOW=1; break; }
+    sleep 0.5
+  done
   sleep 0.5
-done
-sleep 0.5
-kill $P; wait $P 2>/dev/null
-if [ -n "${SLOW:-}" ]; then NSTEPS=0; else
-read -r PACE NSTEPS < <($PY -c "
+  kill $P; wait $P 2>/dev/null
+  if [ -z "$SLOW" ]; then
+    read -r PACE NSTEPS < <($PY -c "
 import os, time; t100, t2 = (os.path.getmtime('$CK/step_%d.pt' % s) for s in (100, $PROBE))
 pace = (t2 - t100) / ($PROBE - 100)
 print(pace, int($PROBE + max(0, $T0 + $BUDGET - time.time() - 40) / pace))")
-echo "probe: step $PROBE at $(el) s, $PACE s/step, $NSTEPS steps in all"
-fi
-
-# 4. resume with the fitted schedule; stop at the deadline whatever happens
-P=
-[ "$NSTEPS" -gt 0 ] && { $TR --resume --set train.stage2_steps=$NSTEPS >"$W/train2.log" 2>&1 & P=$!; }
-while [ -n "$P" ] && kill -0 $P 2>/dev/null; do
-  [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 12)) ] && { echo "deadline: stopping the run"; kill $P; break; }
-  sleep 1
+    echo "$N: probe step $PROBE at $(el) s, $PACE s/step, $NSTEPS steps in all"
+  fi
+  P=
+  [ "$NSTEPS" -gt 0 ] && { $TR --resume --set train.stage2_steps=$NSTEPS >"$D/train2.log" 2>&1 & P=$!; }
+  while [ -n "$P" ] && kill -0 $P 2>/dev/null; do
+    [ $(( $(date +%s) - T0 )) -ge $((BUDGET - 12)) ] && { echo "$N: deadline: stopping the run"; kill $P; break; }
+    sleep 1
+  done
+  [ -n "$P" ] && wait $P 2>/dev/null
+  echo "$N: training ended at $(el) s"
+  if [ -f "$W/r/$N/model.safetensors" ]; then
+    cp "$W/r/$N/model.safetensors" "$D/model.safetensors"
+  elif [ -f "$CK/latest.pt" ]; then  # the last checkpoint's weights
+    $PY -c "
+from kpcn.checkpoint import load_model_file, save_weights
+save_weights('$D/model_partial.safetensors', load_model_file('$CK/latest.pt'))"
+  fi
+  cp "$W/r/$N/metrics.jsonl" "$D/" 2>/dev/null
+  tail -3 "$D/train2.log" 2>/dev/null
+}
+for e in ${EXTRA:-}; do
+  n=${e%%=*}; c=${e#*=}
+  $PY - "$W" "$n" "$c" <<'EOF' || exit 5
+import os, sys, yaml
+from pathlib import Path
+w, name, src = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+main, cfg = yaml.safe_load(open(w / "cfg.yaml")), yaml.safe_load(open(src))
+data = dict(main["data"], patch_size=cfg.get("data", {}).get("patch_size", main["data"]["patch_size"]), workers=3)
+train = dict(cfg.get("train", {}))
+lr = float(os.environ.get("EXTRA_LR", 2e-4))
+train.update(stage1_steps=0, stage2_steps=100000, lr=lr, stage2_lr=lr, schedule="onecycle", threads=None,
+             val_every=500, ckpt_every=100, keep_checkpoints=20)
+if os.environ.get("EXTRA_BATCH"):
+    train["batch_size"] = int(os.environ["EXTRA_BATCH"])
+train.setdefault("batch_size", main["train"]["batch_size"])
+train.setdefault("grad_clip", 1.0)
+out = {"name": name, "model": cfg["model"], "data": data, "train": train}
+yaml.safe_dump(out, open(w / f"cfg_{name}.yaml", "w"), sort_keys=False)
+print(name, "from", src, "patch", data["patch_size"], "batch", train["batch_size"], flush=True)
+EOF
+  mkdir -p "$OUT/$n"; cp "$W/cfg_$n.yaml" "$OUT/$n/cfg.yaml"
+  fit "$n" "$W/cfg_$n.yaml" "$OUT/$n" > "$OUT/$n/fit.log" 2>&1 &
 done
-[ -n "$P" ] && wait $P 2>/dev/null
-echo "training ended at $(el) s"
-if [ -f "$W/r/g/model.safetensors" ]; then
-  cp "$W/r/g/model.safetensors" "$OUT/model.safetensors"
-else  # the last checkpoint's weights
-  $PY -c "
-import sys; from kpcn.checkpoint import load_model_file, save_weights
-save_weights('$OUT/model_partial.safetensors', load_model_file('$CK/latest.pt'))"
-fi
-cp "$W/r/g/metrics.jsonl" "$W/train1.log" "$W/train2.log" "$OUT/" 2>/dev/null
+fit g "$W/cfg.yaml" "$OUT"
+wait
+for e in ${EXTRA:-}; do cat "$OUT/${e%%=*}/fit.log"; done
 ls "$W/d" | grep -c '^s' >"$OUT/scenes.txt"
-echo "all done at $(el) s"; tail -5 "$W/train2.log"
+echo "all done at $(el) s"
