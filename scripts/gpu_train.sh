@@ -153,4 +153,26 @@ fit g "$W/cfg.yaml" "$OUT"
 wait
 for e in ${EXTRA:-}; do cat "$OUT/${e%%=*}/fit.log"; done
 ls "$W/d" | grep -c '^s' >"$OUT/scenes.txt"
+
+# 5. what comes back from the device is at most 8 files of 16 MiB, 64 MiB in all (a paper-width U-Net's weights are
+# 63 MB): the main run's weights stay as they are, the extra runs' are stored as float16 (they load into float32
+# models as they are), and everything else goes into one tar in 15 MiB parts. Here: cat pack.tar.* | tar x
+if [ -n "${EXTRA:-}" ]; then
+  $PY - "$OUT" ${EXTRA} <<'EOF'
+import sys
+from pathlib import Path
+from safetensors import safe_open
+from safetensors.torch import save_file
+for e in sys.argv[2:]:
+    for f in (Path(sys.argv[1]) / e.split("=")[0]).glob("model*.safetensors"):
+        with safe_open(str(f), framework="pt") as h:
+            meta, state = h.metadata(), {k: h.get_tensor(k) for k in h.keys()}
+        save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, str(f), metadata=meta)
+EOF
+  rm -f "$W"/pack.tar.*
+  (cd "$OUT" && tar cf - --exclude='./model*.safetensors' .) | split -b 15M - "$W/pack.tar." \
+    && (cd "$OUT" && find . -mindepth 1 -maxdepth 1 -not -name 'model*.safetensors' -exec rm -rf {} +) \
+    && mv "$W"/pack.tar.* "$OUT"/
+  ls -la "$OUT"
+fi
 echo "all done at $(el) s"
