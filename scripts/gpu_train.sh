@@ -19,6 +19,8 @@
 # (twenty-second) 88 MB, with unet_wide64c (twenty-third) 97 MB: move every weights file but INIT's aside for the
 # call, `bash scripts/gpu_weights.sh hold`
 # (and `restore` after it).
+# REF_FLOOR (a relMSE, e.g. 0.0015) gives each reference whose own noise adds more than that more samples, up to
+# 16384 spp (python -m kpcn.render dataset --ref-floor-target).
 # EXTRA="NAME=CONFIG ..." trains more models beside it on the same scenes, to the same deadline, each from its
 # CONFIG's model and train sections (from scratch unless that config names train.init; its data.patch_size kept, its
 # train.batch_size unless EXTRA_BATCH; peak rate EXTRA_LR, default 2e-4): weights, configs and logs go to $OUT/NAME/.
@@ -57,7 +59,8 @@ for i in $(seq 0 $((PROCS - 1))); do
   ( s=$((FIRST + i))
     while [ $(( $(date +%s) - T0 )) -lt "$RENDER_S" ]; do
       $PY -m kpcn.render dataset --out "$W/d/s$s" --scenes 1 --first-seed $s --spp $SPP --ref-spp $REF \
-          --resolution $RES $RES >>"$W/d/render_$i.log" 2>&1 || echo "render $s failed" >>"$W/d/failed.log"
+          --resolution $RES $RES ${REF_FLOOR:+--ref-floor-target $REF_FLOOR} >>"$W/d/render_$i.log" 2>&1 \
+        || echo "render $s failed" >>"$W/d/failed.log"
       s=$((s + PROCS))
     done ) &
 done

@@ -69,6 +69,10 @@ def _parse_args(argv=None):
     d.add_argument("--first-seed", type=int, help="seed of the first scene (default 0)")
     d.add_argument("--spp", type=int, nargs="+", help="input spp (default 2 4 8 16 32)")
     d.add_argument("--ref-spp", type=int, help="reference spp (default 1024)")
+    d.add_argument("--ref-floor-target", type=float, metavar="RELMSE",
+                   help="give a reference whose own noise adds more relMSE than this more samples, its own kept "
+                        "(default none)")
+    d.add_argument("--ref-spp-max", type=int, help="the most samples a refined reference gets (default 16384)")
     d.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default 128 128")
     d.add_argument("--renderer", choices=("mitsuba", "cycles"),
                    help="mitsuba (default): procedural Mitsuba scenes; cycles: variants of kpcn's generated Blender "
@@ -146,13 +150,15 @@ def _frame(args) -> None:
 
 def _dataset(args) -> None:
     flags = {"out": args.out, "scenes": args.scenes, "first_seed": args.first_seed, "spp": args.spp,
-             "ref_spp": args.ref_spp, "resolution": args.resolution, "renderer": args.renderer}
+             "ref_spp": args.ref_spp, "resolution": args.resolution, "renderer": args.renderer,
+             "ref_floor_target": args.ref_floor_target, "ref_spp_max": args.ref_spp_max}
     cfg = config_from_args(DatasetConfig, args, flags)
     if cfg.renderer == "mitsuba":
         ensure_variant()
     try:
         out = render_dataset(cfg.out, cfg.scenes, cfg.spp, cfg.ref_spp, tuple(cfg.resolution), cfg.first_seed,
-                             scenes=cfg.scene_list())
+                             scenes=cfg.scene_list(), ref_floor_target=cfg.ref_floor_target,
+                             ref_spp_max=cfg.ref_spp_max)
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"{cfg.out} is incomplete; run the same command again to resume") from None
     save_config(cfg, out / "config.yaml")

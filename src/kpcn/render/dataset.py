@@ -26,7 +26,9 @@ from .manifest import DatasetError, DatasetStatus, dataset_status
 from .cycles_scene import GENERATED, generated_variant, is_generated
 from ..integrator import ALBEDO_REVISION, NORMAL_REVISION
 from .albedo import update_first_hit
-from .record import HEADER_KEY, fewer_samples, first_hit_differences, frame_record, scene_identity, stale_reason
+from .record import (HEADER_KEY, fewer_samples, first_hit_differences, frame_record, more_samples, scene_identity,
+                     stale_reason)
+from .refine import REF_SPP_MAX, reference_floor, refined_spp
 from .scene import load_scene
 
 log = logging.getLogger("kpcn.render")
@@ -47,6 +49,10 @@ class DatasetConfig:
     spp: list[int] = field(default_factory=lambda: [2, 4, 8, 16, 32])  #: input sample counts
     ref_spp: int = 1024
     resolution: tuple[int, int] = (128, 128)  #: (width, height)
+    #: a reference whose own noise adds more relMSE than this (:func:`kpcn.render.refine.reference_floor`) gets
+    #: more samples, its own kept (:func:`kpcn.render.refine.refined_spp`), up to ``ref_spp_max``; None: ref_spp
+    ref_floor_target: float | None = None
+    ref_spp_max: int = REF_SPP_MAX
     #: mitsuba: kpcn's procedural Mitsuba scenes (full split with variances); cycles: variants of kpcn's
     #: generated Blender Cycles scene, cycles:generated:<first_seed> ... (no variance layers; needs kpcn[blender])
     renderer: str = "mitsuba"
@@ -57,7 +63,8 @@ class DatasetConfig:
         if self.renderer not in ("mitsuba", "cycles"):
             raise ConfigError(f"renderer: expected mitsuba or cycles, got {self.renderer!r}")
         try:
-            check_settings(self.scenes, self.spp, self.ref_spp, self.resolution, self.first_seed)
+            check_settings(self.scenes, self.spp, self.ref_spp, self.resolution, self.first_seed,
+                           self.ref_floor_target, self.ref_spp_max)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
 
@@ -68,7 +75,8 @@ class DatasetConfig:
         return [f"{GENERATED}:{self.first_seed + i}" for i in range(self.scenes)]
 
 
-def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
+def check_settings(n_scenes, spp, ref_spp, resolution, first_seed, ref_floor_target=None,
+                   ref_spp_max=REF_SPP_MAX) -> None:
     """ValueError naming the setting (and its ``python -m kpcn.render dataset`` flag) that is invalid."""
     if n_scenes is not None and n_scenes < 1:
         raise ValueError(f"scenes (--scenes): must be >= 1, got {n_scenes}")
@@ -83,6 +91,10 @@ def check_settings(n_scenes, spp, ref_spp, resolution, first_seed) -> None:
     res = list(resolution)
     if len(res) != 2 or min(res) < 1:
         raise ValueError(f"resolution (--resolution): width and height must be >= 1, got {res}")
+    if ref_floor_target is not None and not ref_floor_target > 0:
+        raise ValueError(f"ref_floor_target (--ref-floor-target): must be > 0 (or none), got {ref_floor_target}")
+    if ref_floor_target is not None and ref_spp_max < ref_spp:
+        raise ValueError(f"ref_spp_max (--ref-spp-max): must be >= ref_spp ({ref_spp}), got {ref_spp_max}")
 
 
 def _cycles_frame(scene: str, path: Path, spp: int, seed: int, role: int, resolution, rec: dict) -> None:
@@ -112,6 +124,8 @@ def render_dataset(
     first_seed: int = 0,
     scenes: Sequence[Any] | None = None,
     progress: bool = True,
+    ref_floor_target: float | None = None,
+    ref_spp_max: int = REF_SPP_MAX,
 ) -> Path:
     """Render procedural scenes (or ``scenes``) into ``out_dir`` with a manifest.
 
@@ -128,7 +142,10 @@ def render_dataset(
     that differs only in having fewer samples (a larger ``ref_spp`` for the
     same data set) keeps them and gets the passes that follow
     (:func:`kpcn.render.extend_frame`): raising ``ref_spp`` costs only the
-    samples added. Before the
+    samples added. With ``ref_floor_target``, a Mitsuba reference whose own noise adds more relMSE than that
+    (:func:`kpcn.render.refine.reference_floor`) gets more samples the same way, doubled as often as
+    :func:`kpcn.render.refine.refined_spp` predicts (and again while it falls short), up to ``ref_spp_max``: its
+    record says its own spp, and a reference refined so is kept by a later run with the same settings. Before the
     first frame is changed the manifest says ``"complete": false`` (with the
     new settings and the scenes finished so far); ``"complete": true`` is
     written after the last scene. Files of an earlier data set that the new
@@ -140,7 +157,8 @@ def render_dataset(
     """
     from tqdm import tqdm
 
-    check_settings(None if scenes is not None else n_scenes, spp_list, ref_spp, resolution, first_seed)
+    check_settings(None if scenes is not None else n_scenes, spp_list, ref_spp, resolution, first_seed,
+                   ref_floor_target, ref_spp_max)
     spp_list = [int(s) for s in dict.fromkeys(spp_list)]
     resolution = (int(resolution[0]), int(resolution[1]))
     out = Path(out_dir)
@@ -148,7 +166,7 @@ def render_dataset(
     if not items:
         raise ValueError("scenes: the scene list is empty")
     manifest = {"format": mf.FORMAT, "complete": False, "procedural": scenes is None,
-                **mf.settings(len(items), spp_list, ref_spp, resolution, first_seed),
+                **mf.settings(len(items), spp_list, ref_spp, resolution, first_seed, ref_floor_target, ref_spp_max),
                 "max_depth": MAX_DEPTH, "pass_spp": PASS_SPP, "scenes": []}
     try:
         old = mf.load_manifest(out)
@@ -187,6 +205,10 @@ def render_dataset(
                                max_depth=MAX_DEPTH, pass_spp=PASS_SPP, source=source, fingerprint=fingerprint,
                                albedo=None if is_generated(sc) else ALBEDO_REVISION,
                                normal=None if is_generated(sc) else NORMAL_REVISION)
+            refines = role == "reference" and ref_floor_target is not None and not is_generated(sc)
+            had = more_samples(path, rec, ref_spp_max) if refines else None
+            if had is not None:  # refined earlier to a floor: its own spp
+                rec = {**rec, "spp": had}
             reason = stale_reason(path, rec)
             if reason is not None:
                 if not changing:
@@ -219,6 +241,13 @@ def render_dataset(
                     render_to_exr(to_render, path, s, seed=seed, role=noise_role, loaded=loaded, max_depth=MAX_DEPTH,
                                   pass_spp=PASS_SPP, meta={HEADER_KEY: json.dumps(rec, sort_keys=True)})
             entry["frames"][path.relative_to(out).as_posix()] = rec
+        if ref_floor_target is not None and not is_generated(sc):
+            path = jobs[-1][2]
+            rec = _refine(path, entry["frames"][path.relative_to(out).as_posix()], ref_floor_target, ref_spp_max,
+                          lambda: loaded or load_scene(to_render, resolution), to_render, seed,
+                          None if changing else save)
+            changing = changing or rec["spp"] != entry["frames"][path.relative_to(out).as_posix()]["spp"]
+            entry["frames"][path.relative_to(out).as_posix()] = rec
         manifest["scenes"].append(entry)
         if changing:
             save()
@@ -226,6 +255,29 @@ def render_dataset(
     if changing or old != manifest:
         save()
     return out
+
+
+def _refine(path: Path, rec: dict, target: float, most: int, scene_loaded, to_render, seed: int,
+            before_change) -> dict:
+    """The reference at ``path`` (record ``rec``) given more samples while its floor is above ``target`` (see
+    :func:`render_dataset`); returns its record. ``before_change`` (or None) runs before the file is changed."""
+    loaded = None
+    while True:
+        fr = read_exr(path)
+        floor = reference_floor(fr)
+        want = fr.spp if floor is None else refined_spp(fr.spp, floor, target, most)
+        if want <= fr.spp:
+            return rec
+        if before_change is not None:
+            before_change()
+            before_change = None
+        log.info("refining %s: its noise adds relMSE %.3g at %d spp (target %g): %d -> %d spp", path, floor, fr.spp,
+                 target, fr.spp, want)
+        loaded = loaded or scene_loaded()
+        more = extend_frame(fr, to_render, want, seed, role=int(rec["noise_role"]), pass_spp=int(rec["pass_spp"]),
+                            loaded=loaded, max_depth=int(rec["max_depth"]))
+        rec = {**rec, "spp": want}
+        write_exr(path, more.layers, {**more.meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
 
 
 def ensure_dataset(
@@ -237,6 +289,8 @@ def ensure_dataset(
     first_seed: int,
     render_if_missing: bool = True,
     progress: bool = True,
+    ref_floor_target: float | None = None,
+    ref_spp_max: int = REF_SPP_MAX,
 ) -> Path:
     """The procedural data set at ``root`` with these settings, complete; rendered or resumed if allowed.
 
@@ -251,7 +305,8 @@ def ensure_dataset(
       with ``python -m kpcn.render dataset``, or point at another folder).
 
     Settings are compared as ``scenes`` (n_scenes), ``first_seed``, the set of
-    ``spp``, ``ref_spp`` and ``resolution`` (width, height). A legacy manifest
+    ``spp``, ``ref_spp``, ``resolution`` (width, height) and the references' refinement
+    (``ref_floor_target``, ``ref_spp_max``; none unless given). A legacy manifest
     (written before completeness was recorded) counts as complete when it lists
     ``n_scenes`` scenes ``random:<first_seed + i>`` with these settings, and as
     incomplete when it lists a shorter prefix of them.
@@ -261,9 +316,9 @@ def ensure_dataset(
             or differs, and the command that renders the requested data set.
         ValueError: invalid settings.
     """
-    check_settings(n_scenes, spp, ref_spp, resolution, first_seed)
+    check_settings(n_scenes, spp, ref_spp, resolution, first_seed, ref_floor_target, ref_spp_max)
     root = Path(root)
-    want = mf.settings(n_scenes, spp, ref_spp, resolution, first_seed)
+    want = mf.settings(n_scenes, spp, ref_spp, resolution, first_seed, ref_floor_target, ref_spp_max)
     cmd = mf.render_command(root, want)
     st = dataset_status(root)
     if st.manifest is None:
@@ -289,5 +344,6 @@ def ensure_dataset(
         if not render_if_missing:
             raise DatasetError(f"{root}: {what}; finish it with `{cmd}` (it resumes and keeps the finished frames)")
         log.info("%s: %s; resuming", root, what)
-    render_dataset(root, n_scenes, spp, ref_spp, tuple(resolution), first_seed, progress=progress)
+    render_dataset(root, n_scenes, spp, ref_spp, tuple(resolution), first_seed, progress=progress,
+                   ref_floor_target=ref_floor_target, ref_spp_max=ref_spp_max)
     return root

@@ -41,7 +41,9 @@ from typing import Any, Sequence
 MANIFEST = "manifest.json"
 FORMAT = 2
 #: the settings ensure_dataset compares, in the order its messages list them
-SETTING_KEYS = ("n_scenes", "first_seed", "spp", "ref_spp", "resolution")
+SETTING_KEYS = ("n_scenes", "first_seed", "spp", "ref_spp", "resolution", "ref_floor_target", "ref_spp_max")
+#: the settings of references refined to a noise floor; a manifest without them refines none
+REFINE_KEYS = ("ref_floor_target", "ref_spp_max")
 
 
 class DatasetError(ValueError):
@@ -51,10 +53,15 @@ class DatasetError(ValueError):
     """
 
 
-def settings(n_scenes: int, spp: Sequence[int], ref_spp: int, resolution: Sequence[int], first_seed: int) -> dict:
-    """The settings of a procedural data set, as the manifest stores them."""
-    return {"n_scenes": int(n_scenes), "first_seed": int(first_seed), "spp": [int(s) for s in dict.fromkeys(spp)],
-            "ref_spp": int(ref_spp), "resolution": [int(v) for v in resolution]}
+def settings(n_scenes: int, spp: Sequence[int], ref_spp: int, resolution: Sequence[int], first_seed: int,
+             ref_floor_target: float | None = None, ref_spp_max: int | None = None) -> dict:
+    """The settings of a procedural data set, as the manifest stores them (``ref_floor_target`` and
+    ``ref_spp_max`` only when references are refined: :func:`kpcn.render.refine.refined_spp`)."""
+    s = {"n_scenes": int(n_scenes), "first_seed": int(first_seed), "spp": [int(s) for s in dict.fromkeys(spp)],
+         "ref_spp": int(ref_spp), "resolution": [int(v) for v in resolution]}
+    if ref_floor_target is not None:
+        s.update(ref_floor_target=float(ref_floor_target), ref_spp_max=int(ref_spp_max or ref_spp))
+    return s
 
 
 def render_command(root: str | Path, s: dict) -> str:
@@ -62,7 +69,19 @@ def render_command(root: str | Path, s: dict) -> str:
     w, h = s["resolution"]
     return (f"python -m kpcn.render dataset --out {shlex.quote(str(root))} --scenes {s['n_scenes']} "
             f"--first-seed {s['first_seed']} --spp {' '.join(map(str, s['spp']))} --ref-spp {s['ref_spp']} "
-            f"--resolution {w} {h}")
+            f"--resolution {w} {h}" + _refine_flags(s))
+
+
+def _refine_flags(s: dict) -> str:
+    if s.get("ref_floor_target") is None:
+        return ""
+    return f" --ref-floor-target {s['ref_floor_target']:g} --ref-spp-max {s['ref_spp_max']}"
+
+
+def _refine_text(s: dict) -> str:
+    if s.get("ref_floor_target") is None:
+        return ""
+    return f" (refined to a floor of relMSE {s['ref_floor_target']:g}, at most {s['ref_spp_max']} spp)"
 
 
 def _text(key: str, value: Any) -> str:
@@ -79,9 +98,9 @@ def describe(s: dict) -> str:
     """One line: ``24 scenes from seed 0, spp 2 4 8, ref_spp 1024, 128x128``."""
     if not s.get("procedural", True):
         return f"{s['n_scenes']} scenes from a custom scene list, spp {_text('spp', s['spp'])}, " \
-               f"ref_spp {s['ref_spp']}, {_text('resolution', s['resolution'])}"
+               f"ref_spp {s['ref_spp']}{_refine_text(s)}, {_text('resolution', s['resolution'])}"
     return (f"{s['n_scenes']} scenes from seed {s['first_seed']}, spp {_text('spp', s['spp'])}, "
-            f"ref_spp {s['ref_spp']}, {_text('resolution', s['resolution'])}")
+            f"ref_spp {s['ref_spp']}{_refine_text(s)}, {_text('resolution', s['resolution'])}")
 
 
 def differences(have: dict, want: dict) -> list[str]:
@@ -96,6 +115,9 @@ def differences(have: dict, want: dict) -> list[str]:
             a, b = sorted(a or []), sorted(b or [])
         if a != b:
             name = {"n_scenes": "scenes", "first_seed": "first seed"}.get(k, k)
+            if k in REFINE_KEYS:
+                out.append(f"{k} {'none' if a is None else a} (requested {'none' if b is None else b})")
+                continue
             out.append(f"{name} {_text(k, a) if a is not None else '?'} (requested {_text(k, b)})")
     return out
 
@@ -127,7 +149,7 @@ def manifest_settings(m: dict) -> dict:
         procedural = all(sc.get("source") == f"random:{first + i}" for i, sc in enumerate(scenes))
     return {"n_scenes": n, "first_seed": first, "spp": [int(s) for s in m.get("spp", [])],
             "ref_spp": int(m.get("ref_spp", 0)), "resolution": [int(v) for v in m.get("resolution", [0, 0])],
-            "procedural": procedural}
+            "procedural": procedural, **{k: m[k] for k in REFINE_KEYS if m.get(k) is not None}}
 
 
 def listed_files(m: dict) -> list[str]:

@@ -210,6 +210,19 @@ def fewer_samples(path: Path, want: dict) -> int | None:
     return None
 
 
+def more_samples(path: Path, want: dict, most: int) -> int | None:
+    """The spp of the frame at ``path`` when it differs from the record ``want`` only in having more samples, at
+    most ``most`` (a reference refined to a noise floor, :mod:`kpcn.render.refine`); None otherwise."""
+    found = _record_differences(path, want)
+    if found is None:
+        return None
+    have, diff = found
+    spp = have.get("spp")
+    if set(diff) == {"spp"} and isinstance(spp, int) and int(want["spp"]) < spp <= most:
+        return spp
+    return None
+
+
 def stale_reason(path: Path, want: dict) -> str | None:
     """Why the frame at ``path`` cannot be reused for the record ``want``; None when it can."""
     if not path.exists():

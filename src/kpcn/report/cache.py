@@ -13,6 +13,7 @@ from ..io import Frame, read_exr, write_exr
 from ..render.cycles import cycles_seed  # Cycles' seed for a report render: per seed and role
 from ..render.cycles_scene import generated_variant, is_generated
 from ..render.record import update_hash
+from ..render.refine import reference_floor, refined_spp
 from .config import CONVERGED_ROLE, INPUT_ROLE_BASE, WARMUP_ROLE, ReportConfig, log
 
 _NAMED = ("test:", "random:", "file:")  #: scene names (not paths): test scenes, procedural seeds, shipped XML files
@@ -79,25 +80,6 @@ def _cached(path: Path, spp: int, resolution: tuple[int, int]) -> Frame | None:
         log.warning("%s: cached render does not match (spp %s, size %s), rendering again", path, fr.spp, fr.shape)
         return None
     return fr
-
-
-def reference_floor(ref: Frame) -> float | None:
-    """relMSE the reference's own noise adds: mean(colorVariance / (ref² + 0.01)), or None without variance."""
-    var = ref.get("colorVariance")
-    if var is None:
-        return None
-    c = ref["color"].astype(np.float64)
-    return float(np.mean(np.broadcast_to(var, c.shape) / (c**2 + 1e-2)))
-
-
-def refined_spp(spp: int, floor: float, target: float, most: int) -> int:
-    """The reference spp a floor of ``floor`` at ``spp`` samples is refined to: ``spp`` doubled until the floor,
-    falling as ``1/spp``, is predicted at or below ``target``, and no further than ``most``; ``spp`` itself when
-    the floor is already there or no doubling fits."""
-    want = spp
-    while floor * spp / want > target and want * 2 <= most:
-        want *= 2
-    return want
 
 
 def scene_source(scene: Any, resolution: tuple[int, int]) -> tuple[Any, str]:
