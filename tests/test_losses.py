@@ -87,3 +87,8 @@ def test_coarse_term_weighs_lost_energy_not_zero_mean_grain():
         plain + 50.0 * float(tone.square().mean()), rel=1e-3)
     assert float(create_loss("log_msssim", {"tone_l2_weight": 50.0})(y, y)) == pytest.approx(
         float(create_loss("log_msssim")(y, y)), abs=1e-6)
+    # relmse_weight adds the relMSE (the report's), 0 when equal
+    want = plain + 10.0 * float(((x - y) ** 2 / (y**2 + 1e-2)).mean())
+    assert float(create_loss("log_msssim", {"relmse_weight": 10.0})(x, y)) == pytest.approx(want, rel=1e-5)
+    assert float(create_loss("log_msssim", {"relmse_weight": 10.0})(y, y)) == pytest.approx(
+        float(create_loss("log_msssim")(y, y)), abs=1e-6)

@@ -178,10 +178,11 @@ def coarse_log_l1(x: torch.Tensor, y: torch.Tensor, pools=(4, 16)) -> torch.Tens
 
 @register_loss("log_msssim")
 def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coarse_weight: float = 0.0,
-               coarse_pools=(4, 16), tone_l2_weight: float = 0.0) -> torch.Tensor:
+               coarse_pools=(4, 16), tone_l2_weight: float = 0.0, relmse_weight: float = 0.0) -> torch.Tensor:
     """The log loss + ``ssim_weight`` · (1 − MS-SSIM of the tone-mapped colours), ``+ coarse_weight`` ·
     :func:`coarse_log_l1`, ``+ tone_l2_weight`` · the mean squared error of the tone-mapped colours (what the
-    report's PSNR measures). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
+    report's PSNR measures), ``+ relmse_weight`` · :func:`relmse` (what the report's relMSE measures: dark pixels
+    weigh most). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
     input can stand for is skewed (a glossy highlight a few samples missed); a squared error's optimum is the mean."""
     def tone(t):  # kpcn.metrics.tonemap; the offset keeps the gamma's slope finite at 0
         t = t.clamp_min(0)
@@ -193,6 +194,8 @@ def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coars
         loss = loss + coarse_weight * coarse_log_l1(x, y, tuple(coarse_pools))
     if tone_l2_weight:
         loss = loss + tone_l2_weight * (tx - ty).square().mean()
+    if relmse_weight:
+        loss = loss + relmse_weight * relmse(x, y)
     return loss
 
 
