@@ -243,11 +243,12 @@ def render_dataset(
             entry["frames"][path.relative_to(out).as_posix()] = rec
         if ref_floor_target is not None and not is_generated(sc):
             path = jobs[-1][2]
-            rec = _refine(path, entry["frames"][path.relative_to(out).as_posix()], ref_floor_target, ref_spp_max,
+            key = path.relative_to(out).as_posix()
+            rec = _refine(path, entry["frames"][key], ref_floor_target, ref_spp_max,
                           lambda: loaded or load_scene(to_render, resolution), to_render, seed,
                           None if changing else save)
-            changing = changing or rec["spp"] != entry["frames"][path.relative_to(out).as_posix()]["spp"]
-            entry["frames"][path.relative_to(out).as_posix()] = rec
+            changing = changing or rec is not entry["frames"][key]
+            entry["frames"][key] = rec
         manifest["scenes"].append(entry)
         if changing:
             save()
@@ -261,9 +262,8 @@ def _refine(path: Path, rec: dict, target: float, most: int, scene_loaded, to_re
             before_change) -> dict:
     """The reference at ``path`` (record ``rec``) given more samples while its floor is above ``target`` (see
     :func:`render_dataset`); returns its record. ``before_change`` (or None) runs before the file is changed."""
-    loaded = None
+    loaded, fr = None, read_exr(path)
     while True:
-        fr = read_exr(path)
         floor = reference_floor(fr)
         want = fr.spp if floor is None else refined_spp(fr.spp, floor, target, most)
         if want <= fr.spp:
@@ -274,10 +274,10 @@ def _refine(path: Path, rec: dict, target: float, most: int, scene_loaded, to_re
         log.info("refining %s: its noise adds relMSE %.3g at %d spp (target %g): %d -> %d spp", path, floor, fr.spp,
                  target, fr.spp, want)
         loaded = loaded or scene_loaded()
-        more = extend_frame(fr, to_render, want, seed, role=int(rec["noise_role"]), pass_spp=int(rec["pass_spp"]),
-                            loaded=loaded, max_depth=int(rec["max_depth"]))
+        fr = extend_frame(fr, to_render, want, seed, role=int(rec["noise_role"]), pass_spp=int(rec["pass_spp"]),
+                          loaded=loaded, max_depth=int(rec["max_depth"]))
         rec = {**rec, "spp": want}
-        write_exr(path, more.layers, {**more.meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
+        write_exr(path, fr.layers, {**fr.meta, HEADER_KEY: json.dumps(rec, sort_keys=True)})
 
 
 def ensure_dataset(

@@ -196,31 +196,29 @@ def first_hit_differences(path: Path, want: dict) -> list[str]:
     return diff if diff and set(diff) <= set(FIRST_HIT) else []
 
 
-def fewer_samples(path: Path, want: dict) -> int | None:
-    """The spp of the frame at ``path`` when it differs from the record ``want`` only in having fewer samples
-    (the same seed, noise role and pass size: its passes are the first of ``want``'s, so
-    :func:`kpcn.render.extend_frame` can add the rest); None otherwise."""
+def _spp_alone(path: Path, want: dict) -> int | None:
+    """The spp of the frame at ``path`` when its record differs from ``want`` in the spp alone; None otherwise."""
     found = _record_differences(path, want)
     if found is None:
         return None
     have, diff = found
     spp = have.get("spp")
-    if set(diff) == {"spp"} and isinstance(spp, int) and 2 <= spp < int(want["spp"]):
-        return spp
-    return None
+    return spp if set(diff) == {"spp"} and isinstance(spp, int) else None
+
+
+def fewer_samples(path: Path, want: dict) -> int | None:
+    """The spp of the frame at ``path`` when it differs from the record ``want`` only in having fewer samples
+    (the same seed, noise role and pass size: its passes are the first of ``want``'s, so
+    :func:`kpcn.render.extend_frame` can add the rest); None otherwise."""
+    spp = _spp_alone(path, want)
+    return spp if spp is not None and 2 <= spp < int(want["spp"]) else None
 
 
 def more_samples(path: Path, want: dict, most: int) -> int | None:
     """The spp of the frame at ``path`` when it differs from the record ``want`` only in having more samples, at
     most ``most`` (a reference refined to a noise floor, :mod:`kpcn.render.refine`); None otherwise."""
-    found = _record_differences(path, want)
-    if found is None:
-        return None
-    have, diff = found
-    spp = have.get("spp")
-    if set(diff) == {"spp"} and isinstance(spp, int) and int(want["spp"]) < spp <= most:
-        return spp
-    return None
+    spp = _spp_alone(path, want)
+    return spp if spp is not None and int(want["spp"]) < spp <= most else None
 
 
 def stale_reason(path: Path, want: dict) -> str | None:

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from ..render.refine import REF_SPP_MAX
+
 log = logging.getLogger("kpcn.report")  #: one logger for the whole package (its name shows in the CLI's log lines)
 
 METRICS = ("relmse", "smape", "psnr", "ssim")
@@ -53,7 +55,7 @@ class ReportConfig:
     #: often as the floor's ``1/spp`` fall predicts the target needs, up to ``ref_spp_max``. None: ``ref_spp`` for
     #: every scene. Blender Cycles references are not refined
     ref_floor_target: float | None = 0.0015
-    ref_spp_max: int = 16384
+    ref_spp_max: int = REF_SPP_MAX
     converged_spp: int = 1024  #: spp of the converged input every method is also run on (0: none)
     resolution: tuple[int, int] = (256, 256)
     models: list[str] = field(default_factory=lambda: ["unet_kpcn", "mskpcn", "kpcn", "dpcn"])
