@@ -69,6 +69,17 @@ def test_different_references_are_refused(tmp_path, two):
         compare(load_side(f"{b}"), load_side(f"{elsewhere}"))
 
 
+def test_one_method_in_two_reports_is_named_by_its_report(tmp_path, two):
+    b, _ = two
+    again = _report(tmp_path, "again", [_row("a", 4, "base", 31.0, 0.009, 0.91),
+                                        _row("b", 4, "base", 32.0, 0.008, 0.92)])
+    cmp = compare(load_side(f"{b}"), load_side(f"{again}"))
+    assert cmp.base == "base (base)" and cmp.candidate == "base (again)"
+    assert cmp.means["base (again)"][4]["psnr"] == pytest.approx(31.5) and (4, "psnr") in cmp.wins
+    with pytest.raises(ValueError, match="against itself"):
+        compare(load_side(f"{b}"), load_side(f"{b}"))
+
+
 def test_cli(two, tmp_path, capsys):
     b, c = two
     assert main([str(b), f"{c}:new", "--worst", "1"]) == 0

@@ -36,6 +36,8 @@ class Side:
 
     label: str
     rows: dict[tuple[str, int], dict] = field(default_factory=dict)
+    #: the report's folder name: added to the label where both sides have the same method
+    report: str = ""
 
 
 @dataclass
@@ -71,7 +73,7 @@ def load_side(spec: str) -> Side:
         method = methods[0]
     if method not in methods and method != MC:
         raise ValueError(f"{spec}: no method {method!r} in {csv_path} (it has {', '.join(methods)})")
-    side = Side(label=method)
+    side = Side(label=method, report=Path(path).name)
     for r in rows:
         if r["method"] == method:
             side.rows[(r["scene"], int(r["spp"]))] = r
@@ -93,6 +95,11 @@ def _same_frames(base: Side, cand: Side) -> list[tuple[str, int]]:
 def compare(base: Side, cand: Side) -> Comparison:
     """``cand`` against ``base`` on the frames both have (see :class:`Comparison`)."""
     shared = _same_frames(base, cand)
+    if base.label == cand.label:  # one method in two reports: name each by its report
+        base = Side(f"{base.label} ({base.report})", base.rows, base.report)
+        cand = Side(f"{cand.label} ({cand.report})", cand.rows, cand.report)
+        if base.label == cand.label:
+            raise ValueError(f"{base.label} against itself: name two reports or two methods")
     spps = sorted({spp for _, spp in shared})
     means: dict[str, dict[int, dict[str, float]]] = {base.label: {}, cand.label: {}}
     wins, losses, moves = [], [], {}
