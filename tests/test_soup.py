@@ -95,11 +95,15 @@ def test_blend_state_keeps_integer_tensors_and_refuses_differing_ones():
         blend_state([s1, {"w": s2["w"]}], [0.5, 0.5])
 
 
-def test_the_shipped_default_is_the_blend_its_metadata_records():
-    """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c."""
+def test_shipped_blends_are_the_blends_their_metadata_records():
+    """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default,
+    wide64m, names its three runs (not shipped: results/) with equal parts."""
     from kpcn.inference.weights import resolve_weights
 
     record, _ = read_weights(resolve_weights("unet_kpcn"))
+    src = record["soup"]["sources"]
+    assert len(src) == 3 and all(s["alpha"] == pytest.approx(1 / 3) and len(s["sha256"]) == 64 for s in src)
+    record, _ = read_weights(resolve_weights("unet_kpcn:wide64h"))
     src = record["soup"]["sources"]
     assert [s["alpha"] for s in src] == [0.7, 0.3] and src[1]["name"] == "unet_kpcn:wide64c"
     digest = hashlib.sha256(resolve_weights("unet_kpcn:wide64c").read_bytes()).hexdigest()
