@@ -77,7 +77,7 @@ def test_a_tag_sets_config_over_its_file():
     r, h = weights_entry("unet_kpcn", "wide64r"), weights_entry("unet_kpcn", "wide64h")
     assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
     default = weights_entry("unet_kpcn")
-    assert default.tag == "wide64m" and dict(default.config) == dict(r.config)  # the default has the stage too
+    assert default.tag == "wide64f" and dict(default.config) == dict(r.config)  # the default has the stage too
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
     assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None
     from kpcn.inference import describe

@@ -97,10 +97,14 @@ def test_blend_state_keeps_integer_tensors_and_refuses_differing_ones():
 
 def test_shipped_blends_are_the_blends_their_metadata_records():
     """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default,
-    wide64m, names its three runs (not shipped: results/) with equal parts."""
+    wide64f, names its two runs (not shipped: results/) with equal parts, and wide64m its three."""
     from kpcn.inference.weights import resolve_weights
 
     record, _ = read_weights(resolve_weights("unet_kpcn"))
+    src = record["soup"]["sources"]
+    assert len(src) == 2 and all(s["alpha"] == pytest.approx(1 / 2) and len(s["sha256"]) == 64 for s in src)
+    assert src[0]["sha256"] != src[1]["sha256"]  # two different runs, not one run twice
+    record, _ = read_weights(resolve_weights("unet_kpcn:wide64m"))
     src = record["soup"]["sources"]
     assert len(src) == 3 and all(s["alpha"] == pytest.approx(1 / 3) and len(s["sha256"]) == 64 for s in src)
     record, _ = read_weights(resolve_weights("unet_kpcn:wide64h"))
