@@ -87,3 +87,21 @@ def test_cli(two, tmp_path, capsys):
     assert "| 64 | 40.50 / 0.001500 / 0.97500 | 39.10 / 0.002450 / 0.97300 | none |" in out
     assert main([str(tmp_path / "missing"), f"{c}:new"]) == 2
     assert "no results.csv" in capsys.readouterr().err
+
+
+def test_reports_pooled(tmp_path, two):
+    # a second validation set of other scenes: pooled, each side's means are over all four scenes
+    b, c = two
+    b2 = _report(tmp_path, "base2", [_row("x", 4, "ref", 20.0, 0.02, 0.80), _row("y", 4, "ref", 22.0, 0.02, 0.82)])
+    c2 = _report(tmp_path, "cand2", [_row("x", 4, "new", 19.0, 0.03, 0.79), _row("y", 4, "new", 22.0, 0.02, 0.82)])
+    base, cand = load_side(f"{b}+{b2}:ref"), load_side(f"{c}:new+{c2}")
+    assert base.label == "base+ref" and cand.label == "new" and len(base.rows) == 6
+    cmp = compare(base, cand)
+    assert cmp.means["base+ref"][4]["psnr"] == pytest.approx((30.0 + 32.0 + 20.0 + 22.0) / 4)
+    assert cmp.means["new"][4]["psnr"] == pytest.approx((30.5 + 32.1 + 19.0 + 22.0) / 4)
+    # scene x's 1 dB loss outweighs a and b's gains at 4 spp: pooled, PSNR is lost where the first set alone won it
+    assert (4, "psnr") in cmp.losses and (4, "psnr") in compare(load_side(f"{b}"), load_side(f"{c}:new")).wins
+    assert cmp.moves[4]["psnr"][0][0] == "x"
+    with pytest.raises(ValueError, match="a at 4 spp.*more than one"):
+        load_side(f"{b}+{b}")
+    assert main([f"{b}+{b2}:ref", f"{c}:new+{c2}", "--worst", "0"]) == 0

@@ -8,9 +8,14 @@ that loses several dB while the others gain a little, and this names that scene.
 The two reports must have measured the same frames against the same references (their ``ref_spp`` and ``ref_floor``
 per scene): otherwise the comparison is refused, naming the scenes that differ.
 
+A side may pool several reports, ``DIR[:METHOD]+DIR[:METHOD]...`` (each its own method): the means are then over
+all their scenes. A candidate chosen on one validation set is the best of several on those scenes, so its lead there
+is biased upwards; a second set of scenes, pooled with the first, is how a later candidate is judged against it.
+
 Example (the default against a fine-tune, on two reports of the same cached renders)::
 
     python -m kpcn.report.compare results/rep/val3:unet_kpcn results/rep/val11:rN
+    python -m kpcn.report.compare results/rep/v1_sf:sf+results/rep/v2:unet_kpcn results/rep/v1_g3:g3+results/rep/v2_g3:g3
 """
 from __future__ import annotations
 
@@ -58,7 +63,10 @@ class Comparison:
 
 def load_side(spec: str) -> Side:
     """``DIR[:METHOD]``: the rows of ``METHOD`` in ``DIR/results.csv`` (a report's folder). Without ``METHOD``, the
-    report's one method besides raw Monte Carlo; a report with several must name one."""
+    report's one method besides raw Monte Carlo; a report with several must name one. ``SPEC+SPEC...``: the rows of
+    several reports pooled (no frame in two of them)."""
+    if "+" in spec:
+        return _pooled([load_side(part) for part in spec.split("+")], spec)
     path, _, method = spec.partition(":")
     csv_path = Path(path) / "results.csv"
     if not csv_path.is_file():
@@ -78,6 +86,18 @@ def load_side(spec: str) -> Side:
         if r["method"] == method:
             side.rows[(r["scene"], int(r["spp"]))] = r
     return side
+
+
+def _pooled(sides: list[Side], spec: str) -> Side:
+    """One side of the rows of ``sides`` (each from its own report), labelled by their methods and reports."""
+    rows: dict[tuple[str, int], dict] = {}
+    for side in sides:
+        twice = sorted(f"{s} at {spp} spp" for s, spp in set(rows) & set(side.rows))
+        if twice:
+            raise ValueError(f"{spec}: {', '.join(twice[:3])} in more than one of the pooled reports")
+        rows.update(side.rows)
+    label = "+".join(dict.fromkeys(s.label for s in sides))
+    return Side(label=label, rows=rows, report="+".join(s.report for s in sides))
 
 
 def _same_frames(base: Side, cand: Side) -> list[tuple[str, int]]:
@@ -148,8 +168,9 @@ def markdown(c: Comparison, worst: int = 2) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m kpcn.report.compare", description=__doc__.split("\n\n")[0])
-    p.add_argument("base", help="REPORT_DIR[:METHOD]: the method compared against")
-    p.add_argument("candidates", nargs="+", help="REPORT_DIR[:METHOD] each")
+    p.add_argument("base", help="REPORT_DIR[:METHOD]: the method compared against (REPORT_DIR[:METHOD]+...: "
+                                "several reports pooled)")
+    p.add_argument("candidates", nargs="+", help="REPORT_DIR[:METHOD] each (or several pooled with +)")
     p.add_argument("--worst", type=int, default=2, help="scenes listed per spp and figure (default: 2; 0: none)")
     a = p.parse_args(argv)
     try:
