@@ -77,7 +77,11 @@ def test_a_tag_sets_config_over_its_file():
     r, h = weights_entry("unet_kpcn", "wide64r"), weights_entry("unet_kpcn", "wide64h")
     assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
     default = weights_entry("unet_kpcn")
-    assert default.tag == "wide64f" and dict(default.config) == dict(r.config)  # the default has the stage too
+    # the default has the stage too: wide64f's file with a smaller ridge
+    f = weights_entry("unet_kpcn", "wide64f")
+    assert default.tag == "wide64e" and default.path == f.path and dict(f.config) == dict(r.config)
+    assert dict(default.config) == {**dict(r.config), "detail_eps": 0.001}
+    assert load_model("unet_kpcn", "cpu").detail_regression == (6, 0.001, 0.15)
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
     assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None
     from kpcn.inference import describe

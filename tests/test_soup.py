@@ -96,8 +96,8 @@ def test_blend_state_keeps_integer_tensors_and_refuses_differing_ones():
 
 
 def test_shipped_blends_are_the_blends_their_metadata_records():
-    """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default,
-    wide64f, names its two runs (not shipped: results/) with equal parts, and wide64m its three."""
+    """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default's
+    file, wide64f's, names its two runs (not shipped: results/) with equal parts, and wide64m its three."""
     from kpcn.inference.weights import resolve_weights
 
     record, _ = read_weights(resolve_weights("unet_kpcn"))
