@@ -15,7 +15,8 @@ is biased upwards; a second set of scenes, pooled with the first, is how a later
 Example (the default against a fine-tune, on two reports of the same cached renders)::
 
     python -m kpcn.report.compare results/rep/val3:unet_kpcn results/rep/val11:rN
-    python -m kpcn.report.compare results/rep/v1_sf:sf+results/rep/v2:unet_kpcn results/rep/v1_g3:g3+results/rep/v2_g3:g3
+    python -m kpcn.report.compare results/rep/v1_sf:sf+results/rep/v2:unet_kpcn \
+        results/rep/v1_g3:g3+results/rep/v2_g3:g3
 """
 from __future__ import annotations
 
