@@ -310,6 +310,8 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     if d.main:
         # the final weights alone (weights-only), for kpcn.denoise
         save_weights(run / "model.safetensors", model, step=final_step, config=config_dict)
+    if d.world > 1:  # every rank leaves together: a rank that tears the group down while rank 0 still writes can
+        dist.barrier()  # abort at exit (gloo: "terminate called without an active exception"; once in the suite)
     elapsed = time.perf_counter() - t0
     return {"step": final_step, "losses": losses, "val": last_val, "seconds": elapsed,
             "patches_per_s": n_patches / elapsed if elapsed > 0 else 0.0, "rank": d.rank, "world": d.world,
