@@ -2,8 +2,9 @@
 # One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
 # scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
 # U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
-# configs/unet_wide64h.yaml, the shipped default's; INIT: the weights it starts from, default unet_kpcn:wide64h; LR:
-# the peak rate).
+# configs/unet_wide64e_gpu.yaml, the shipped default's recipe; INIT: the weights it starts from, default
+# unet_kpcn:wide64f, the default's file; LR: the peak rate). FIRST: the first scene seed; earlier leases rendered from
+# 50001 (sixteenth session), 60001 (twenty-sixth and thirty-first) and 71001 (thirty-fifth): pass a fresh one.
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
 # config and logs go to $OUT (model.safetensors, or model_partial.safetensors from the last checkpoint).
@@ -31,7 +32,7 @@ set -u
 T0=$(date +%s)
 BUDGET=${BUDGET:-540}; RENDER_S=${RENDER_S:-180}; PROBE=${PROBE:-200}
 PY=${PY:-python3}; RES=${RES:-256}; SPP=${SPP:-"2 4 8 16 32 64 128 256 512"}; REF=${REF:-2048}
-PROCS=${PROCS:-16}; FIRST=${FIRST:-60001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
+PROCS=${PROCS:-16}; FIRST=${FIRST:-81001}; W=${W:-/tmp/g}; OUT=${OUT:-$W/out}
 el() { echo $(( $(date +%s) - T0 )); }
 # renders started before RENDER_S finish up to ~30 s after it, the store and the probe's first 100 steps take ~60 s
 # more: a shorter lease trains nothing (twenty-sixth session: BUDGET=205 RENDER_S=65 stopped its probe at step 100)
@@ -76,12 +77,12 @@ from kpcn.render import dataset_status
 w = Path(sys.argv[1])
 roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
 print(len(roots), "complete scenes", flush=True)
-base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64h.yaml")))
+base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64e_gpu.yaml")))
 d = base["data"]
 d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)),
          spp_by_root={}, balance_spp=False)  # every fresh scene at every spp
-base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64h"), init_extend=True, init_reopen=[],
+base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64f"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
 yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)
