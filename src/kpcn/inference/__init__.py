@@ -13,7 +13,7 @@ Modules: :mod:`.weights` (which model a call means), :mod:`.tiling` (aligned
 tiles with a halo), :mod:`.pipeline` (one frame, end to end), :mod:`.paths`
 (which file a path names: no output ever replaces an input, for the API and the
 CLI alike), :mod:`.heap` (memory reused within and between calls; :func:`release_heap` gives it back
-at once), :mod:`.cli`.
+at once), :mod:`.ensemble` (``views=N``: the mean of mirrored denoisings), :mod:`.cli`.
 """
 from .heap import release_heap
 from .pipeline import PASSTHROUGH_REL_STD, denoise, denoise_result

@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "with the beauty's kernels, written to the output beside the colour (kernel predictors only)")
     p.add_argument("--aov-branch", default=None,
                    help="branch whose kernels filter --layers that are not light groups (default: the first)")
+    p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
+                   help="average this many mirrored copies of each frame, denoised (a little closer to the reference "
+                        "at low spp, in that many times the time; default 1)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     return p
 
@@ -137,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
                 warnings.simplefilter("always")
                 res = denoise_result(inp, None if args.model is None else net, dst, tile=args.tile, device=args.device, half=args.half,
                                      skip=not args.no_skip, layers=args.layers, aov_branch=args.aov_branch,
-                                     precision=args.precision)
+                                     precision=args.precision, views=args.views)
             for wmsg in caught:
                 print(f"warning: {wmsg.message}", file=sys.stderr)
         except (MissingLayerError, ExrError, FileNotFoundError, ValueError, OSError, RuntimeError) as exc:

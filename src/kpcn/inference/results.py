@@ -36,6 +36,8 @@ class DenoiseStats:
             this many bands; 0: it was not.
         detail_radius: the radius of the normal-guided detail stage run after the network
             (:mod:`kpcn.inference.detail`); 0: none was run. detail_seconds: its wall time (part of ``seconds``).
+        views: how many mirrored copies of the frame were denoised and averaged (:mod:`kpcn.inference.ensemble`);
+            the other fields are the first view's, ``seconds`` and ``detail_seconds`` the sums over all.
     """
 
     seconds: float = 0.0
@@ -63,6 +65,7 @@ class DenoiseStats:
     row_bands: int = 0
     detail_radius: int = 0
     detail_seconds: float = 0.0
+    views: int = 1
 
     def summary(self) -> str:
         h, w = self.size
@@ -84,6 +87,8 @@ class DenoiseStats:
             parts.append(f"noise precision {self.noise_precision:.2f}")
         if self.detail_radius:
             parts.append(f"detail stage {self.detail_seconds:.2f} s")
+        if self.views > 1:
+            parts.append(f"mean of {self.views} mirrored views")
         return ", ".join(parts)
 
 

@@ -42,7 +42,9 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("--floor-factor", type=float,
                    help="flag relMSE below this many times the reference's own noise (default: 3)")
     p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 256 256")
-    p.add_argument("--models", nargs="+", help="shipped model names, weights files or label=file (default: unet_kpcn mskpcn kpcn dpcn)")
+    p.add_argument("--models", nargs="+",
+                   help="shipped model names, weights files or label=file, each with an optional @N (2, 4 or 8): "
+                        "the mean of N mirrored views (default: unet_kpcn mskpcn kpcn dpcn)")
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="allow .pt model files that only full unpickling can load (runs their code: trusted files only)")
     p.add_argument("--no-oidn", action="store_true", help="leave OIDN out even if pyoidn is installed")

@@ -62,14 +62,29 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
     from ..models import macs_per_pixel
 
     label, value = parse_model_spec(spec)
+    value, views = split_views(value)
     model = load_model(value, cfg.device, trust_pickle=cfg.trust_checkpoint)  # loaded once: loading is not timed
 
     def fn(frame: Frame) -> np.ndarray:
-        return denoise(frame, model=model, tile=cfg.tile, device=cfg.device)
+        return denoise(frame, model=model, tile=cfg.tile, device=cfg.device, views=views)
 
-    return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs)", cfg.repeats,
-                  macs_per_px=macs_per_pixel(model), macs_source="counted from the model (kpcn.models.macs_per_pixel)",
+    how = f", the mean of {views} mirrored views" if views > 1 else ""
+    counted = "counted from the model (kpcn.models.macs_per_pixel)" + (f", × {views} views" if how else "")
+    return Method(label, fn, f"kpcn.denoise with model {value!r} ({model.input_spec.name} inputs{how})", cfg.repeats,
+                  macs_per_px=views * macs_per_pixel(model),
+                  macs_source=counted,
                   layers=tuple(model.input_spec.layers))
+
+
+def split_views(value: str) -> tuple[str, int]:
+    """``"unet_kpcn@8"`` -> ``("unet_kpcn", 8)``: a model spec's ``@N`` suffix, the views of
+    :func:`kpcn.inference.denoise` (1, 2, 4 or 8); ``("unet_kpcn", 1)`` without one."""
+    head, sep, tail = value.rpartition("@")
+    if sep and tail.isdigit() and head:
+        if int(tail) not in (1, 2, 4, 8):
+            raise ValueError(f"model spec {value!r}: @N takes 1, 2, 4 or 8 mirrored views, got {tail}")
+        return head, int(tail)
+    return value, 1
 
 
 def oidn_method(repeats: int = 1) -> Method:
