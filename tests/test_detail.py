@@ -77,10 +77,10 @@ def test_a_tag_sets_config_over_its_file():
     r, h = weights_entry("unet_kpcn", "wide64r"), weights_entry("unet_kpcn", "wide64h")
     assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
     default = weights_entry("unet_kpcn")
-    # the default has the stage too: wide64f's file with a smaller ridge
-    f = weights_entry("unet_kpcn", "wide64f")
-    assert default.tag == "wide64e" and default.path == f.path and dict(f.config) == dict(r.config)
-    assert dict(default.config) == {**dict(r.config), "detail_eps": 0.001}
+    # the default has the stage too, with the smaller ridge that wide64e (wide64f's file) set over its file
+    f, e = weights_entry("unet_kpcn", "wide64f"), weights_entry("unet_kpcn", "wide64e")
+    assert default.tag == "wide64n" and e.path == f.path and dict(f.config) == dict(r.config)
+    assert dict(default.config) == dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
     assert load_model("unet_kpcn", "cpu").detail_regression == (6, 0.001, 0.15)
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
     assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None

@@ -217,7 +217,15 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
-register_weights("unet_kpcn", "wide64e", "unet_wide64f.safetensors", default=True,
+register_weights("unet_kpcn", "wide64n", "unet_wide64n.safetensors", default=True,
+                 config=dict(DETAIL_STAGE, detail_eps=0.001),
+                 description="unet_kpcn:wide64e (the same network, 98 k multiply-adds per pixel, and its detail stage) "
+                             "fine-tuned in two runs of 600 steps on the CPU on 89 fresh procedural 256x256 scenes "
+                             "with the references as targets at every spp (no distillation from itself above 32 spp, "
+                             "which kept fireflies in 256-spp inputs), blended 1/4 + 1/4 + 1/2 with wide64e "
+                             "(python -m kpcn.soup; configs/unet_wide64n.yaml); chosen on validation scenes "
+                             "random:920001-920010, 930001-930010 and 940001-940010 pooled")
+register_weights("unet_kpcn", "wide64e", "unet_wide64f.safetensors",
                  config=dict(DETAIL_STAGE, detail_eps=0.001),
                  description="unet_kpcn:wide64f's weights (the same network, 98 k multiply-adds per pixel) with its "
                              "detail stage's ridge detail_eps 0.001 instead of 0.01 (radius 6 and clip 0.15 as "
