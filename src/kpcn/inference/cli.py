@@ -26,6 +26,7 @@ from ..checkpoint import CheckpointError
 from ..config import ConfigError
 from ..io import ExrError, MissingLayerError
 from ..models import list_weights
+from .ensemble import VIEWS
 from .paths import check_jobs
 from .pipeline import denoise_result
 from .weights import DEFAULT_MODEL, describe, load_model, resolve_device
@@ -68,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "with the beauty's kernels, written to the output beside the colour (kernel predictors only)")
     p.add_argument("--aov-branch", default=None,
                    help="branch whose kernels filter --layers that are not light groups (default: the first)")
-    p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
+    p.add_argument("--views", type=int, choices=VIEWS, default=1,
                    help="average this many mirrored copies of each frame, denoised (a little closer to the reference "
                         "at low spp, in that many times the time; default 1)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")

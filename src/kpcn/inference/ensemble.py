@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 
 import numpy as np
 
 from ..io import Frame
-from .paths import check_not_input, check_output_path
 from .results import DenoiseResult
-from .weights import choose_default, load_model, resolve_device
+from .weights import load_model, resolve_device
 
 __all__ = ["VIEWS", "view", "unview", "ensemble_result"]
 
@@ -56,6 +54,7 @@ def unview(a: np.ndarray, k: int) -> np.ndarray:
 
 
 def check_views(views) -> int:
+    """``views`` as an int, or a ValueError naming the counts :data:`VIEWS` allows."""
     if isinstance(views, bool) or views not in VIEWS:
         raise ValueError(f"denoise: views must be one of {', '.join(map(str, VIEWS))} (mirrored copies of the frame "
                          f"to average), got {views!r}")
@@ -68,20 +67,15 @@ def ensemble_result(src, model=None, out_path=None, *, views: int, device="auto"
     as a :class:`DenoiseResult` whose stats are the first view's with the summed ``seconds`` (``stats.views``
     says how many). ``model``, ``out_path``, ``device``, ``trust_pickle`` and ``kw`` as
     :func:`~kpcn.inference.denoise_result` takes them; the output file is written once, from the mean."""
-    from .pipeline import _as_frame, _source_path, _write_output, denoise_result  # the pipeline imports this module
+    # the pipeline imports this module
+    from .pipeline import _as_frame, _check_output, _default_model, _write_output, denoise_result
 
     n = check_views(views)
-    if out_path is not None:  # refused before any work, as a single view is
-        check_output_path(out_path)
-        source = _source_path(src)
-        if source is not None and os.path.exists(source):
-            check_not_input(out_path, source)
+    _check_output(out_path, src)  # refused before any work, as a single view is
     frame, read_s = _as_frame(src, ())
     dev = resolve_device(device)
     if model is None:
-        model, note = choose_default(frame.layers)
-        if note:
-            warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=3)
+        model = _default_model(frame, stacklevel=3)
     net = load_model(model, dev, trust_pickle=trust_pickle)  # once for every view
     color, layers, first, seconds, detail_s = None, {}, None, 0.0, 0.0
     for k in range(n):

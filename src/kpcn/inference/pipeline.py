@@ -71,6 +71,26 @@ def _source_path(src) -> str | None:
     return None
 
 
+def _check_output(out_path, src) -> None:
+    """Refuse ``out_path`` (None: nothing to check) when it is a folder, lies under a file, or is the input ``src``
+    under any spelling (:mod:`.paths`)."""
+    if out_path is None:
+        return
+    check_output_path(out_path)
+    source = _source_path(src)
+    if source is not None and os.path.exists(source):  # a missing input is the reader's error
+        check_not_input(out_path, source)
+
+
+def _default_model(frame: Frame, stacklevel: int):
+    """The shipped model for the layers ``frame`` has, with a warning (at the caller's ``stacklevel``) where it is
+    not the default."""
+    model, note = choose_default(frame.layers)
+    if note:
+        warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=stacklevel + 1)
+    return model
+
+
 def _as_frame(src, layers) -> tuple[Frame, float]:
     """A sanitised frame with ``layers``, and the seconds spent reading it."""
     t0 = time.perf_counter()
@@ -155,19 +175,13 @@ def denoise_result(
                                precision=precision)
     if tile != "auto" and tile is not None and (isinstance(tile, (bool, str)) or int(tile) != tile):
         raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame) or 'auto', got {tile!r}")
-    if out_path is not None:  # refused before any work, not after it
-        check_output_path(out_path)
-        source = _source_path(exr_path_or_frame)
-        if source is not None and os.path.exists(source):  # a missing input is the reader's error
-            check_not_input(out_path, source)
+    _check_output(out_path, exr_path_or_frame)  # refused before any work, not after it
     dev = resolve_device(device)
     read_s = 0.0
     frame = None
     if model is None:  # the shipped model for the layers this file has
         frame, read_s = _as_frame(exr_path_or_frame, ())
-        model, note = choose_default(frame.layers)
-        if note:
-            warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=2)
+        model = _default_model(frame, stacklevel=2)
     net = load_model(model, dev, trust_pickle=trust_pickle)
     dtype = resolve_precision(precision, net, dev)
     spec = net.input_spec

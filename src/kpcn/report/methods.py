@@ -79,10 +79,13 @@ def model_method(spec: str, cfg: ReportConfig) -> Method:
 def split_views(value: str) -> tuple[str, int]:
     """``"unet_kpcn@8"`` -> ``("unet_kpcn", 8)``: a model spec's ``@N`` suffix, the views of
     :func:`kpcn.inference.denoise` (1, 2, 4 or 8); ``("unet_kpcn", 1)`` without one."""
+    from ..inference.ensemble import VIEWS
+
     head, sep, tail = value.rpartition("@")
     if sep and tail.isdigit() and head:
-        if int(tail) not in (1, 2, 4, 8):
-            raise ValueError(f"model spec {value!r}: @N takes 1, 2, 4 or 8 mirrored views, got {tail}")
+        if int(tail) not in VIEWS:
+            allowed = f"{', '.join(map(str, VIEWS[:-1]))} or {VIEWS[-1]}"
+            raise ValueError(f"model spec {value!r}: @N takes {allowed} mirrored views, got {tail}")
         return head, int(tail)
     return value, 1
 
