@@ -22,6 +22,7 @@ from kpcn.config import ConfigError, load_config
 from kpcn.inputs import get_input_spec, list_input_specs
 from kpcn.io import Frame, MissingLayerError
 from kpcn.models import DenoiserModel, create_model, list_models, model_config_class
+from kpcn.models.unet_branch import DeepBlock
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAME_RES = (150, 117)  # larger than two halos of the U-Net, not a multiple of its alignment
@@ -52,7 +53,10 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                   "specular_widths": [8, 12, 16, 24]},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True,
-                                  "radiance_mix": True, "albedo_kernel": 3}]}
+                                  "radiance_mix": True, "albedo_kernel": 3},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "deep_blocks": 2},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "kernel_size": 3,
+                                  "coarse_kernel": 5, "albedo_kernel": 3}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -68,7 +72,12 @@ def _sharp(name: str, **kw) -> DenoiserModel:
     extra = {"out_init_gain": 5.0} if "out_init_gain" in model_config_class(name).__dataclass_fields__ else {}
     extra.update(SMALL.get(name, {}))
     extra.update(kw)
-    return create_model(name, **extra).eval()
+    model = create_model(name, **extra).eval()
+    with torch.no_grad():  # a new deep block passes its input unchanged (second conv at zero): make it do something
+        for m in model.modules():
+            if isinstance(m, DeepBlock):
+                m.conv2.weight.normal_(0.0, 0.05)
+    return model
 
 
 @pytest.fixture(scope="module")

@@ -449,6 +449,26 @@ def test_unet_guide_kernel_must_be_odd_and_reaches_no_further_than_the_radius_sa
     assert radius[1] == radius[3] and radius[9] == radius[1] + 1
 
 
+def test_unet_coarse_kernel_and_deep_blocks_settings():
+    """``coarse_kernel`` sizes the coarser levels' kernels only (their heads' logits, the reach the radius counts) and
+    is refused where there are no coarser levels or it is even; ``deep_blocks`` widens the radius by its convs'
+    reach at the coarsest level and is refused below 0."""
+    base = create_model("unet_kpcn", stem="half", kernel_scales=3, kernel_size=3)
+    mixed = create_model("unet_kpcn", stem="half", kernel_scales=3, kernel_size=3, coarse_kernel=5)
+    assert mixed.diffuse.head.out_channels == base.diffuse.head.out_channels == 9 + 1
+    assert [h.out_channels for h in mixed.diffuse.heads] == [25 + 1, 25]
+    # levels 1 and 2 reach (5 // 2 + 2) · 2**l instead of (3 // 2 + 2) · 2**l: 2 + 4 more pixels
+    assert mixed.receptive_radius == base.receptive_radius + 6
+    with pytest.raises(ValueError, match="coarse_kernel must be 0 .* or a positive odd integer, got 4"):
+        create_model("unet_kpcn", stem="half", kernel_scales=3, coarse_kernel=4)
+    with pytest.raises(ValueError, match="coarse_kernel needs kernel_scales >= 2"):
+        create_model("unet_kpcn", coarse_kernel=3)
+    deep = create_model("unet_kpcn", stem="half", kernel_scales=3, kernel_size=3, deep_blocks=2)
+    assert deep.receptive_radius == base.receptive_radius + 2 * 2 * 16  # two blocks of two 3x3 convs at 1/16
+    with pytest.raises(ValueError, match="deep_blocks must be an integer >= 0, got -1"):
+        create_model("unet_kpcn", deep_blocks=-1)
+
+
 def test_band_gain_scales_the_high_band_of_each_blended_level():
     """``combine_levels`` with gains: β = 1 is the blend without them; β = 0 at the finest level leaves only the
     blend of its low band with the coarse result (so the output is smooth at the 2x2 scale: it equals

@@ -416,7 +416,8 @@ def _tiny_unet_cfg(tiny_dataset, tmp_path, name, model_kw, **train_kw):
     """A 3-step run of a tiny ``stem: half`` U-Net with three kernel levels, its model options ``model_kw``."""
     cfg = tiny_cfg(tiny_dataset, tmp_path, name=name, **{"stage1_steps": 3, "stage2_steps": 0, **train_kw})
     cfg.model = dict(name="unet_kpcn", widths=[8, 12, 16], convs_per_level=1, kernel_size=3, stem="half",
-                     guide_channels=4, summary_channels=4, kernel_scales=3, **model_kw)
+                     guide_channels=4, summary_channels=4, kernel_scales=3)
+    cfg.model.update(model_kw)
     return cfg
 
 
@@ -469,6 +470,81 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
         c = gained.diffuse(x)
         d = plain.diffuse(x)
     assert (c - d).abs().max() > 1e-3
+
+
+def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
+    """``deep_blocks`` added to a trained U-Net with ``train.init_extend``: the model denoises a real render as the
+    file does (each block's second conv starts at zero); the blocks are live (the loss has a gradient on that
+    zero conv), a block that is not the identity changes the output, and ``train_only`` can train them alone."""
+    import kpcn
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", {}), progress=False)
+    src = str(tmp_path / "a" / "model.safetensors")
+    with pytest.raises(ConfigError, match="deep_blocks"):  # not without saying so
+        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(deep_blocks=2), init=src), progress=False)
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(deep_blocks=2), init=src, init_extend=True, lr=1e-12,
+                         stage1_steps=1), progress=False)
+    plain, deep = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    assert len(deep.diffuse.deep) == 2 and len(deep.specular.deep) == 2 and not hasattr(plain.diffuse.deep, "0")
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, deep, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
+    spec = deep.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+    conv2 = deep.diffuse.deep[1].conv2
+    conv2.weight.requires_grad_(True)
+    deep.diffuse(x).square().mean().backward()
+    assert conv2.weight.grad.abs().max() > 0
+    with torch.no_grad():
+        conv2.weight.normal_(0.0, 0.1)
+        assert (deep.diffuse(x) - plain.diffuse(x)).abs().max() > 1e-4
+    # the blocks trained alone: they move, nothing else does
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(deep_blocks=1), init=src, init_extend=True, lr=1e-2,
+                         train_only=["*.deep.*"]), progress=False)
+    trained = load_model(str(tmp_path / "c" / "model.safetensors"), device="cpu").state_dict()
+    before = plain.state_dict()
+    assert all(torch.equal(trained[k], v) for k, v in before.items())
+    assert float(trained["diffuse.deep.0.conv2.weight"].abs().max()) > 0
+
+
+def test_init_prune_crops_unet_kernels_to_their_centre_taps(tiny_dataset, tmp_path, render):
+    """``train.init_prune`` into a U-Net with smaller full-resolution kernels (``kernel_size`` 5 -> 3, the coarser
+    levels kept at 5 by ``coarse_kernel``): on a real render its level-0 kernels are the file's centre 3x3 taps,
+    renormalised; the coarser levels' kernels and every blending weight are the file's; growing is refused."""
+    from kpcn.config import ConfigError
+    from kpcn.features import frame_to_tensors
+    from kpcn.inference import load_model
+
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", dict(kernel_size=5, band_gain=True, albedo_kernel=3)),
+          progress=False)
+    src = str(tmp_path / "a" / "model.safetensors")
+    kw = dict(init=src, init_extend=True, lr=1e-12, stage1_steps=1)
+    small = dict(kernel_size=3, coarse_kernel=5, band_gain=True, albedo_kernel=3)
+    with pytest.raises(ConfigError, match="kernel_size"):  # not without init_prune
+        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", small, **kw), progress=False)
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", small, init_prune=True, **kw), progress=False)
+    old, new = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    spec = new.input_spec
+    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+    for b in ("diffuse", "specular"):
+        with torch.no_grad():
+            ko, kn = getattr(old, b).kernels(x[b]), getattr(new, b).kernels(x[b])
+        centre = ko.kernels[0].unflatten(1, (5, 5))[:, 1:4, 1:4].flatten(1, 2)
+        torch.testing.assert_close(kn.kernels[0], centre / centre.sum(1, keepdim=True), rtol=1e-4, atol=1e-6)
+        assert float((ko.kernels[0].sum(1) - centre.sum(1)).abs().max()) > 1e-3  # the file's 5x5 reached further
+        for a, c in zip(kn.kernels[1:], ko.kernels[1:]):
+            torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-6)
+        for a, c in zip(kn.alphas + kn.gains, ko.alphas + ko.gains):
+            if a is not None:
+                torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ConfigError, match="cropped, not grown"):
+        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kernel_size=7, band_gain=True, albedo_kernel=3),
+                             init_prune=True, **kw), progress=False)
 
 
 def test_init_reopen_restarts_a_blending_weight(tiny_dataset, tmp_path, render):

@@ -61,7 +61,10 @@ def _rel(a, b) -> float:
                                 {"radiance_mix": True, "albedo_kernel": 3, "band_gain": True},
                                 {"radiance_mix": True, "radiance_pool": True, "kernel_scales": 4},
                                 {"input_spec": "color_albedo_normal"}, {"input_spec": "split_novar"},
-                                {"input_spec": "color_albedo_normal_noise"}],
+                                {"input_spec": "color_albedo_normal_noise"},
+                                {"kernel_size": 3, "coarse_kernel": 5, "albedo_kernel": 3, "band_gain": True},
+                                {"coarse_kernel": 3, "radiance_mix": True, "radiance_pool": True},
+                                {"deep_blocks": 1, "band_gain": True}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")
 @pytest.mark.parametrize("band", [32, 6])
 def test_row_bands_equal_the_whole_frame(frame, monkeypatch, kw, band):

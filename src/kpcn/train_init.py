@@ -41,9 +41,11 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
-                  "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix"}
+                  "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks"}
     # the detail stage's settings add no parameter: a file trained without the stage starts one trained with it
     free = {"name", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
+    if cfg.train.init_extend and cfg.train.init_prune:  # smaller U-Net kernels start from the file's centre taps
+        free |= {"kernel_size", "coarse_kernel"}
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
     held = {k: f.default for k, f in fields.items() if f.default is not dataclasses.MISSING} | record["hparams"]
@@ -57,14 +59,43 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                           f"config's {want.get('name')} (file, config): {mismatch}")
     state = {k: v.to(torch.float32) for k, v in weights.items()}
     if cfg.train.init_extend:
+        source = create_model(**record["hparams"])
         groups = model.channel_groups()
-        source_groups = create_model(**record["hparams"]).channel_groups() if groups else None
+        source_groups = source.channel_groups() if groups else None
+        if cfg.train.init_prune:
+            state = _crop_kernels(state, source, model, path)
         # on the CPU, where the file was read: the model may already sit on a GPU
         state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
                         source_groups, prune=cfg.train.init_prune)
     model.load_state_dict(state)
     _reopen_blends(model, cfg.train.init_reopen)
     return str(path)
+
+
+def _crop_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module, path) -> dict:
+    """``train.init_prune``: each U-Net kernel level whose kernels the model has smaller than the file's
+    (``kernel_size``, ``coarse_kernel``) starts from the centre taps of the file's logits: the file's kernels
+    truncated and renormalised by the softmax, a start for training rather than the file's outputs. The head's
+    other channels (blend, gain, albedo kernel, mixing weight) follow as they are. A larger kernel is refused."""
+    out = dict(state)
+    for b in getattr(model, "branches", ()):
+        src, dst = getattr(source, b, None), getattr(model, b, None)
+        if not (hasattr(src, "heads") and hasattr(dst, "heads")):
+            continue
+        for level in range(min(src.cfg.kernel_scales, dst.cfg.kernel_scales)):
+            ks, km = src.cfg.level_kernel(level), dst.cfg.level_kernel(level)
+            if km > ks:
+                raise ConfigError(f"train.init_prune: {path}'s {b} kernels at level {level} are {ks}x{ks}; the "
+                                  f"model's {km}x{km} (kernels can be cropped, not grown)")
+            if km == ks:
+                continue
+            m = (ks - km) // 2
+            keep = torch.tensor([r * ks + c for r in range(m, m + km) for c in range(m, m + km)])
+            name = f"{b}.head" if level == 0 else f"{b}.heads.{level - 1}"
+            for p in ("weight", "bias"):
+                v = state[f"{name}.{p}"]
+                out[f"{name}.{p}"] = torch.cat([v[keep], v[ks * ks:]])
+    return out
 
 
 #: the logit a reopened blending weight restarts at: α = sigmoid(-1) ≈ 0.27
@@ -86,7 +117,7 @@ def _reopen_blends(model: torch.nn.Module, entries) -> None:
             raise ConfigError(f"train.init_reopen: {entry!r}: kernel level {level} of the {branch} branch blends in "
                               f"no coarser level (with kernel_scales {n}, levels 0..{n - 2} do)")
         head = net.head if level == 0 else net.heads[level - 1]
-        kk = net.cfg.kernel_size ** 2
+        kk = net.cfg.level_kernel(level) ** 2
         with torch.no_grad():
             head.weight[kk].zero_()
             head.bias[kk] = REOPEN_LOGIT
@@ -126,9 +157,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     out = dict(state)
     for k, t in target.items():
         if k not in state:
-            if not (k.endswith(".gate") or re.search(r"(^|\.)heads\.\d+\.(weight|bias)$", k)):
-                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate or a coarser "
-                                  f"kernel level can be added)")
+            if not (k.endswith(".gate") or re.search(r"(^|\.)(heads\.\d+|deep\.\d+\.conv[12])\.(weight|bias)$", k)):
+                raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate, a coarser "
+                                  f"kernel level or a deep block can be added)")
             out[k] = t.detach().clone()
     groups, source_groups = groups or {}, source_groups or {}
     for k, v in state.items():

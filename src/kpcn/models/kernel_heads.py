@@ -123,10 +123,14 @@ class MultiScaleApply(nn.Module):
     (:func:`~kpcn.models.layers.pool2_radiance`; ``UNetConfig.radiance_pool``). Kernels with ``mixes``
     (``UNetConfig.radiance_mix``) filter each level with :func:`radiance_mixed`."""
 
-    def __init__(self, kernel_size: int, alignment: int, radiance: bool = False) -> None:
+    def __init__(self, kernel_size: int, alignment: int, radiance: bool = False,
+                 coarse_kernel: int | None = None) -> None:
         super().__init__()
         self.kernel_size, self.alignment = kernel_size, alignment
         self.apply_one = KernelApply(kernel_size, "replicate")
+        #: the coarser levels' kernels (``UNetConfig.coarse_kernel``), where they differ from the finest level's
+        same = not coarse_kernel or coarse_kernel == kernel_size
+        self.apply_coarse = self.apply_one if same else KernelApply(coarse_kernel, "replicate")
         self.pool = pool2_radiance if radiance else pool2
 
     def forward(self, colour: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
@@ -138,10 +142,11 @@ class MultiScaleApply(nn.Module):
         for level, k in enumerate(ks.kernels):
             if level:
                 level_colour = self.pool(level_colour)
+            apply = self.apply_coarse if level else self.apply_one
             if ks.mixes is not None:
-                filtered.append(radiance_mixed(self.apply_one, level_colour.contiguous(), k, ks.mixes[level]))
+                filtered.append(radiance_mixed(apply, level_colour.contiguous(), k, ks.mixes[level]))
             else:
-                filtered.append(self.apply_one(level_colour.contiguous(), k))
+                filtered.append(apply(level_colour.contiguous(), k))
         return combine_levels(filtered, ks.alphas, ks.gains)[..., :h, :w]
 
 

@@ -39,6 +39,22 @@ def _convs(c_in: int, c_out: int, n: int, first=nn.Conv2d) -> nn.Sequential:
     return nn.Sequential(*mods)
 
 
+class DeepBlock(nn.Module):
+    """A residual block of two 3×3 convs at one level: ``relu(h + conv2(relu(conv1(h))))``, ``(B, C, H, W)`` ->
+    ``(B, C, H, W)``. ``conv2`` starts at zero, so a new block passes a non-negative (post-ReLU) ``h`` unchanged."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        nn.init.kaiming_normal_(self.conv1.weight, nonlinearity="relu")
+        for t in (self.conv1.bias, self.conv2.weight, self.conv2.bias):
+            nn.init.zeros_(t)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return relu_(h + self.conv2(relu_(self.conv1(h))))
+
+
 class UNetBranch(nn.Module):
     """One branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` filtered colour (channels 0..2).
 
@@ -55,6 +71,8 @@ class UNetBranch(nn.Module):
         self.enc = nn.ModuleList()
         for level, width in enumerate(w):
             self.enc.append(_convs(c_in if level == 0 else w[level - 1], width, cfg.convs_per_level))
+        #: UNetConfig.deep_blocks: residual blocks after the encoder's coarsest level
+        self.deep = nn.ModuleList(DeepBlock(w[-1]) for _ in range(cfg.deep_blocks))
         s = cfg.summary_channels
         self.summary = nn.Conv2d(2 * w[-1], s, 1) if s else None
         self.dec = nn.ModuleList()
@@ -86,10 +104,11 @@ class UNetBranch(nn.Module):
                     kernel_prior_bias(ka, cfg.init_sigma, cfg.logit_scale))
         self.apply_albedo = KernelApply(ka, "replicate") if ka else None
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
-        self.heads = nn.ModuleList(self._make_head(w[lv - off], k * k + (blend if lv < n - 1 else 0) + self.mix)
-                                   for lv in range(1, n))
+        kc = cfg.level_kernel(1)
+        self.heads = nn.ModuleList(self._make_head(w[lv - off], kc * kc + (blend if lv < n - 1 else 0) + self.mix,
+                                                   k=kc) for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else \
-            MultiScaleApply(k, cfg.alignment, radiance=cfg.radiance_pool)
+            MultiScaleApply(k, cfg.alignment, radiance=cfg.radiance_pool, coarse_kernel=kc)
         #: the conv stack's dtype (None: float32); see :meth:`UNetKPCN.set_compute_dtype`
         self.compute_dtype: torch.dtype | None = None
 
@@ -109,6 +128,8 @@ class UNetBranch(nn.Module):
             for i in range(n):  # Sequential: conv, ReLU, conv, ReLU, ...
                 groups[f"enc.{level}.{2 * i}"] = ((width,), (c_prev if i == 0 else width,))
             c_prev = width
+        for i in range(cfg.deep_blocks):
+            groups[f"deep.{i}.conv1"] = groups[f"deep.{i}.conv2"] = ((w[-1],), (w[-1],))
         if s:
             groups["summary"] = ((s,), (w[-1], w[-1]))  # [mean, std] of the bottleneck
         below = (w[-1], s) if s else (w[-1],)
@@ -127,8 +148,8 @@ class UNetBranch(nn.Module):
             groups[f"heads.{lv - 1}"] = (None, (w[lv - off],))
         return groups
 
-    def _make_head(self, width: int, out: int, kind=None) -> nn.Conv2d:
-        k, cfg = self.cfg.kernel_size, self.cfg
+    def _make_head(self, width: int, out: int, kind=None, k: int | None = None) -> nn.Conv2d:
+        k, cfg = k or self.cfg.kernel_size, self.cfg
         head = (kind or Conv1x1)(width, out, 1)
         nn.init.kaiming_normal_(head.weight, nonlinearity="linear")
         with torch.no_grad():
@@ -179,6 +200,9 @@ class UNetBranch(nn.Module):
                     h = pool2(h)
                 h = block(h)
                 feats.append(h)
+            for block in self.deep:
+                h = block(h)
+            feats[-1] = h
         return feats
 
     def decode(self, feats: list[torch.Tensor], summary: torch.Tensor | None = None):
@@ -236,6 +260,7 @@ class UNetBranch(nn.Module):
         kernels, alphas, gains, mixes, albedo = [], [], [], [], None
         for level in range(self.cfg.kernel_scales):
             z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
+            kk = self.cfg.level_kernel(level) ** 2
             nb = self.head_layout[1] if level == 0 else z.shape[1] - kk - self.mix
             alpha, gain = blend_weights(z[:, kk:kk + nb])
             if self.mix:

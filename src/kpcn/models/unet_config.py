@@ -23,7 +23,16 @@ class UNetConfig:
         input_spec: the :mod:`kpcn.inputs` spec (``kpcn_split``, ``split_novar``, ``color_albedo_normal``).
         widths: channels of each level, finest first; ``len(widths) - 1`` poolings.
         convs_per_level: 3×3 convs per level in the encoder and in the decoder.
+        deep_blocks: residual blocks ``h = relu(h + conv(relu(conv(h))))`` (3×3 convs, ``widths[-1]`` channels) after
+            the encoder's coarsest level, before the global summary: context and capacity where a pixel costs
+            1/256 of a full-resolution one (``stem: half``, 4 levels: 1.8 k multiply-adds per pixel a block at
+            160 channels). Each block's second conv starts at zero, so ``train.init_extend`` adds blocks to a file
+            without them at its output.
         kernel_size: odd size ``k`` of the predicted full-resolution kernels.
+        coarse_kernel: ``kernel_scales > 1``: odd size of the coarser levels' kernels (0: ``kernel_size``). The
+            full-resolution level is where the kernels' softmax, application and upsampled logits cost time (at
+            1080p); the coarser levels reach far for a quarter of the pixels or fewer: 3 there and 5 here keeps
+            the multi-scale reach and halves the full-resolution kernel work.
         summary_channels: width of the global summary (0: no summary, a purely local model).
         logit_scale: bound of the kernel logits, ``s * tanh(z / s)``.
         init_sigma: std (pixels) of the Gaussian the kernels start as.
@@ -97,7 +106,9 @@ class UNetConfig:
     input_spec: str = "kpcn_split"
     widths: list[int] = field(default_factory=lambda: [16, 24, 32, 48])
     convs_per_level: int = 2
+    deep_blocks: int = 0
     kernel_size: int = 5
+    coarse_kernel: int = 0
     summary_channels: int = 8
     logit_scale: float = 16.0
     init_sigma: float = 1.0
@@ -133,8 +144,14 @@ class UNetConfig:
                              f"{spec.name!r} has {spec.branches}")
         if self.convs_per_level < 1:
             raise ValueError(f"UNetConfig.convs_per_level must be >= 1, got {self.convs_per_level}")
+        if isinstance(self.deep_blocks, bool) or not isinstance(self.deep_blocks, int) or self.deep_blocks < 0:
+            raise ValueError(f"UNetConfig.deep_blocks must be an integer >= 0, got {self.deep_blocks!r}")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise ValueError(f"UNetConfig.kernel_size must be a positive odd integer, got {self.kernel_size}")
+        if isinstance(self.coarse_kernel, bool) or not isinstance(self.coarse_kernel, int) or self.coarse_kernel < 0 \
+                or (self.coarse_kernel and self.coarse_kernel % 2 == 0):
+            raise ValueError(f"UNetConfig.coarse_kernel must be 0 (kernel_size) or a positive odd integer, got "
+                             f"{self.coarse_kernel!r}")
         if self.stem not in ("full", "half"):
             raise ValueError(f"UNetConfig.stem must be 'full' or 'half', got {self.stem!r}")
         top = max(1, len(self.widths) - 1 + self.offset)
@@ -161,6 +178,8 @@ class UNetConfig:
         if self.albedo_kernel and "diffuse" not in spec.branches:
             raise ValueError(f"UNetConfig.albedo_kernel needs an input spec with a diffuse branch (one that "
                              f"remodulates with the albedo); {spec.name!r} has {spec.branches}")
+        if self.coarse_kernel and self.kernel_scales < 2:
+            raise ValueError("UNetConfig.coarse_kernel needs kernel_scales >= 2 (the coarser kernel levels)")
         if self.band_gain and self.kernel_scales < 2:
             raise ValueError("UNetConfig.band_gain needs kernel_scales >= 2 (the gain is of the band a coarser "
                              "kernel level does not replace)")
@@ -202,7 +221,7 @@ class UNetConfig:
     def network_radius(self) -> int:
         c = self.convs_per_level
         scales = [2 ** (level + self.offset) for level in range(len(self.widths))]
-        encoder = c * sum(scales)
+        encoder = c * sum(scales) + 2 * self.deep_blocks * scales[-1]
         decoder = sum(s * (1 + c) for s in scales[:-1])
         # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution (the guide's
         # reach at full resolution, guide_kernel // 2, counts where it exceeds that)
@@ -213,4 +232,9 @@ class UNetConfig:
         """How far the kernels (and, with several scales, their pooling and upsampling) reach."""
         if self.kernel_scales == 1:
             return self.kernel_size // 2
-        return sum((self.kernel_size // 2 + 2) * 2**level for level in range(self.kernel_scales))
+        return sum((self.level_kernel(level) // 2 + 2) * 2**level for level in range(self.kernel_scales))
+
+    def level_kernel(self, level: int) -> int:
+        """The kernel size of kernel level ``level`` (0: full resolution): ``kernel_size``, or ``coarse_kernel``
+        at the coarser levels where it is set."""
+        return self.coarse_kernel if level and self.coarse_kernel else self.kernel_size

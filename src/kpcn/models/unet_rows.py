@@ -178,7 +178,8 @@ class RowStream:
         else:
             self._low, self._low_bias = conv1x1_lowp(h, head.weight[:, :h.shape[1]]), head.bias
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
-            kk, r = cfg.kernel_size**2, cfg.kernel_size // 2
+            kc = cfg.level_kernel(1)
+            kk, r = kc**2, kc // 2
             weights, alphas, gains, mixes = [], [], [], []
             for level in range(1, cfg.kernel_scales):
                 hd, d = net.heads[level - 1], decoded[level - 1]
@@ -196,7 +197,7 @@ class RowStream:
                     if level:
                         colour = self._pool(colour)
                     padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
-                    filtered.append(_apply(padded, w, cfg.kernel_size, mixes[level]))
+                    filtered.append(_apply(padded, w, kc, mixes[level]))
                 self._coarse[key] = combine_levels(filtered, alphas, gains)  # gains: None each without band_gain
         self._half = {}
 
