@@ -421,13 +421,25 @@ def _tiny_unet_cfg(tiny_dataset, tmp_path, name, model_kw, **train_kw):
     return cfg
 
 
+def _denoises_alike(file_model, extended, render, rtol=1e-5):
+    """Assert that a model extended from a file denoises a real render as the file's model does (float32), and return
+    the diffuse branch's features of that render ``(1, C, H, W)`` for probing the extension."""
+    import kpcn
+    from kpcn.features import frame_to_tensors
+
+    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
+    a = kpcn.denoise(frame, file_model, device="cpu", precision="float32")
+    b = kpcn.denoise(frame, extended, device="cpu", precision="float32")
+    assert np.abs(a - b).max() <= rtol * max(1.0, float(np.abs(a).max()))
+    spec = extended.input_spec
+    return spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+
+
 def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     """``band_gain`` added to a trained U-Net with ``train.init_extend``: the new gain channels start at
     β = 1 exactly, so the model denoises a real render as the file does; the gains are live (the loss has a
     gradient on their zero weights), and a gain that is not 1 changes the output."""
-    import kpcn
     from kpcn.config import ConfigError
-    from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
 
     def ucfg(name, band_gain, **kw):
@@ -452,12 +464,7 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     plain, gained = load_model(str(src), device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
     head = gained.diffuse.head
     assert head.out_channels == 3 * 3 + 2 and gained.diffuse.heads[0].out_channels == 3 * 3 + 2
-    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
-    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
-    b = kpcn.denoise(frame, gained, device="cpu", precision="float32")
-    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
-    spec = gained.input_spec
-    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+    x = _denoises_alike(plain, gained, render)
     with torch.no_grad():
         ks = gained.diffuse.kernels(x)
     assert ks.gains is not None and ks.gains[2] is None
@@ -476,9 +483,7 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     """``deep_blocks`` added to a trained U-Net with ``train.init_extend``: the model denoises a real render as the
     file does (each block's second conv starts at zero); the blocks are live (the loss has a gradient on that
     zero conv), a block that is not the identity changes the output, and ``train_only`` can train them alone."""
-    import kpcn
     from kpcn.config import ConfigError
-    from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
 
     train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", {}), progress=False)
@@ -489,12 +494,7 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
                          stage1_steps=1), progress=False)
     plain, deep = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
     assert len(deep.diffuse.deep) == 2 and len(deep.specular.deep) == 2 and not hasattr(plain.diffuse.deep, "0")
-    frame = render("test:glossy", spp=4, seed=1, resolution=(40, 40))
-    a = kpcn.denoise(frame, plain, device="cpu", precision="float32")
-    b = kpcn.denoise(frame, deep, device="cpu", precision="float32")
-    assert np.abs(a - b).max() <= 1e-5 * max(1.0, float(np.abs(a).max()))
-    spec = deep.input_spec
-    x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))["diffuse"]
+    x = _denoises_alike(plain, deep, render)
     conv2 = deep.diffuse.deep[1].conv2
     conv2.weight.requires_grad_(True)
     deep.diffuse(x).square().mean().backward()
@@ -511,10 +511,11 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     assert float(trained["diffuse.deep.0.conv2.weight"].abs().max()) > 0
 
 
-def test_init_prune_crops_unet_kernels_to_their_centre_taps(tiny_dataset, tmp_path, render):
+def test_init_resizes_unet_kernels_from_their_centre_taps(tiny_dataset, tmp_path, render):
     """``train.init_prune`` into a U-Net with smaller full-resolution kernels (``kernel_size`` 5 -> 3, the coarser
     levels kept at 5 by ``coarse_kernel``): on a real render its level-0 kernels are the file's centre 3x3 taps,
-    renormalised; the coarser levels' kernels and every blending weight are the file's; growing is refused."""
+    renormalised; the coarser levels' kernels and every blending weight are the file's. Larger kernels (7x7,
+    ``init_extend`` alone) start as the file's, their new outer taps near zero weight but with a gradient."""
     from kpcn.config import ConfigError
     from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
@@ -524,7 +525,7 @@ def test_init_prune_crops_unet_kernels_to_their_centre_taps(tiny_dataset, tmp_pa
     src = str(tmp_path / "a" / "model.safetensors")
     kw = dict(init=src, init_extend=True, lr=1e-12, stage1_steps=1)
     small = dict(kernel_size=3, coarse_kernel=5, band_gain=True, albedo_kernel=3)
-    with pytest.raises(ConfigError, match="kernel_size"):  # not without init_prune
+    with pytest.raises(ConfigError, match="cropping them needs train.init_prune"):
         train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", small, **kw), progress=False)
     train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", small, init_prune=True, **kw), progress=False)
     old, new = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
@@ -542,9 +543,20 @@ def test_init_prune_crops_unet_kernels_to_their_centre_taps(tiny_dataset, tmp_pa
         for a, c in zip(kn.alphas + kn.gains, ko.alphas + ko.gains):
             if a is not None:
                 torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-6)
-    with pytest.raises(ConfigError, match="cropped, not grown"):
-        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kernel_size=7, band_gain=True, albedo_kernel=3),
-                             init_prune=True, **kw), progress=False)
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kernel_size=7, band_gain=True, albedo_kernel=3), **kw),
+          progress=False)
+    grown = load_model(str(tmp_path / "c" / "model.safetensors"), device="cpu")
+    assert grown.diffuse.head.out_channels == 49 + 2 + 10 and grown.diffuse.heads[0].out_channels == 49 + 2
+    x = _denoises_alike(old, grown, render, rtol=1e-4)
+    with torch.no_grad():
+        kg = grown.diffuse.kernels(x)
+    ring = torch.ones(7, 7, dtype=torch.bool)
+    ring[1:6, 1:6] = False
+    assert float(kg.kernels[0].unflatten(1, (7, 7))[:, ring].sum(1).max()) < 1e-4  # the new taps: nearly no weight
+    head = grown.diffuse.head
+    head.weight.requires_grad_(True)
+    grown.diffuse(x).square().mean().backward()
+    assert float(head.weight.grad[ring.flatten().nonzero()[:, 0]].abs().max()) > 0
 
 
 def test_init_reopen_restarts_a_blending_weight(tiny_dataset, tmp_path, render):

@@ -44,7 +44,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                   "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks"}
     # the detail stage's settings add no parameter: a file trained without the stage starts one trained with it
     free = {"name", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
-    if cfg.train.init_extend and cfg.train.init_prune:  # smaller U-Net kernels start from the file's centre taps
+    if cfg.train.init_extend:  # U-Net kernels of another size start from the file's (_resize_kernels)
         free |= {"kernel_size", "coarse_kernel"}
     # a file written before a field existed holds that field's default
     fields = model_config_class(record["model"]).__dataclass_fields__ if record["model"] == want.get("name") else {}
@@ -62,8 +62,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
         source = create_model(**record["hparams"])
         groups = model.channel_groups()
         source_groups = source.channel_groups() if groups else None
-        if cfg.train.init_prune:
-            state = _crop_kernels(state, source, model, path)
+        state = _resize_kernels(state, source, model, path, cfg.train.init_prune)
         # on the CPU, where the file was read: the model may already sit on a GPU
         state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
                         source_groups, prune=cfg.train.init_prune)
@@ -72,11 +71,17 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     return str(path)
 
 
-def _crop_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module, path) -> dict:
-    """``train.init_prune``: each U-Net kernel level whose kernels the model has smaller than the file's
-    (``kernel_size``, ``coarse_kernel``) starts from the centre taps of the file's logits: the file's kernels
-    truncated and renormalised by the softmax, a start for training rather than the file's outputs. The head's
-    other channels (blend, gain, albedo kernel, mixing weight) follow as they are. A larger kernel is refused."""
+def _resize_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module, path, prune: bool) -> dict:
+    """Each U-Net kernel level whose kernels (``kernel_size``, ``coarse_kernel``) differ in size from the file's.
+
+    * Larger (``train.init_extend``): the file's logits become the centre taps, and each new outer tap starts with
+      zero weights and a bias of ``-1.5 · logit_scale`` (a logit of ``s · tanh(-1.5) ≈ -0.9 s``: ``e^-14.5`` for
+      ``s = 16`` against a logit of 0), so the kernels start close to the file's, where the bound's slope still
+      lets them learn.
+    * Smaller (also ``train.init_prune``): the centre taps of the file's logits, the file's kernels truncated and
+      renormalised by the softmax: a start for training rather than the file's outputs.
+
+    The head's other channels (blend, gain, albedo kernel, mixing weight) follow as they are."""
     out = dict(state)
     for b in getattr(model, "branches", ()):
         src, dst = getattr(source, b, None), getattr(model, b, None)
@@ -84,17 +89,24 @@ def _crop_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module, 
             continue
         for level in range(min(src.cfg.kernel_scales, dst.cfg.kernel_scales)):
             ks, km = src.cfg.level_kernel(level), dst.cfg.level_kernel(level)
-            if km > ks:
-                raise ConfigError(f"train.init_prune: {path}'s {b} kernels at level {level} are {ks}x{ks}; the "
-                                  f"model's {km}x{km} (kernels can be cropped, not grown)")
             if km == ks:
                 continue
-            m = (ks - km) // 2
-            keep = torch.tensor([r * ks + c for r in range(m, m + km) for c in range(m, m + km)])
+            if km < ks and not prune:
+                raise ConfigError(f"train.init_extend: {path}'s {b} kernels at level {level} are {ks}x{ks}, the "
+                                  f"model's {km}x{km}: cropping them needs train.init_prune")
+            small, m = min(ks, km), abs(ks - km) // 2
+            centre = torch.tensor([r * max(ks, km) + c for r in range(m, m + small) for c in range(m, m + small)])
             name = f"{b}.head" if level == 0 else f"{b}.heads.{level - 1}"
             for p in ("weight", "bias"):
                 v = state[f"{name}.{p}"]
-                out[f"{name}.{p}"] = torch.cat([v[keep], v[ks * ks:]])
+                if km < ks:
+                    out[f"{name}.{p}"] = torch.cat([v[centre], v[ks * ks:]])
+                    continue
+                taps = v.new_zeros((km * km,) + tuple(v.shape[1:]))
+                if p == "bias":
+                    taps.fill_(-1.5 * dst.cfg.logit_scale)
+                taps[centre] = v[:ks * ks]
+                out[f"{name}.{p}"] = torch.cat([taps, v[ks * ks:]])
     return out
 
 
