@@ -514,8 +514,9 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
 def test_init_resizes_unet_kernels_from_their_centre_taps(tiny_dataset, tmp_path, render):
     """``train.init_prune`` into a U-Net with smaller full-resolution kernels (``kernel_size`` 5 -> 3, the coarser
     levels kept at 5 by ``coarse_kernel``): on a real render its level-0 kernels are the file's centre 3x3 taps,
-    renormalised; the coarser levels' kernels and every blending weight are the file's. Larger kernels (7x7,
-    ``init_extend`` alone) start as the file's, their new outer taps near zero weight but with a gradient."""
+    renormalised; the coarser levels' kernels and every blending weight are the file's. Larger kernels (7x7, and a
+    5x5 albedo kernel, ``init_extend`` alone) are the file's over its taps (renormalised), and their new outer taps
+    start with some weight and a gradient."""
     from kpcn.config import ConfigError
     from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
@@ -543,20 +544,26 @@ def test_init_resizes_unet_kernels_from_their_centre_taps(tiny_dataset, tmp_path
         for a, c in zip(kn.alphas + kn.gains, ko.alphas + ko.gains):
             if a is not None:
                 torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-6)
-    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kernel_size=7, band_gain=True, albedo_kernel=3), **kw),
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(kernel_size=7, band_gain=True, albedo_kernel=5), **kw),
           progress=False)
     grown = load_model(str(tmp_path / "c" / "model.safetensors"), device="cpu")
-    assert grown.diffuse.head.out_channels == 49 + 2 + 10 and grown.diffuse.heads[0].out_channels == 49 + 2
-    x = _denoises_alike(old, grown, render, rtol=1e-4)
+    assert grown.diffuse.head.out_channels == 49 + 2 + 26 and grown.diffuse.heads[0].out_channels == 49 + 2
+    x = x["diffuse"]
     with torch.no_grad():
-        kg = grown.diffuse.kernels(x)
-    ring = torch.ones(7, 7, dtype=torch.bool)
-    ring[1:6, 1:6] = False
-    assert float(kg.kernels[0].unflatten(1, (7, 7))[:, ring].sum(1).max()) < 1e-4  # the new taps: nearly no weight
+        kg, ko = grown.diffuse.kernels(x), old.diffuse.kernels(x)
+    for k, (new_k, old_k) in {7: (kg.kernels[0], ko.kernels[0]), 5: (kg.albedo[0], ko.albedo[0])}.items():
+        taps = new_k.unflatten(1, (k, k))
+        inner = taps[:, 1:-1, 1:-1].flatten(1, 2)
+        # over the file's taps the grown kernels are the file's, renormalised
+        torch.testing.assert_close(inner / inner.sum(1, keepdim=True), old_k, rtol=1e-4, atol=1e-6)
+        ring = 1.0 - inner.sum(1)  # the new taps' weight: some, less than the file's taps carry
+        assert 1e-3 < float(ring.mean()) < 0.5
     head = grown.diffuse.head
     head.weight.requires_grad_(True)
     grown.diffuse(x).square().mean().backward()
-    assert float(head.weight.grad[ring.flatten().nonzero()[:, 0]].abs().max()) > 0
+    outer = torch.ones(7, 7, dtype=torch.bool)
+    outer[1:-1, 1:-1] = False
+    assert float(head.weight.grad[outer.flatten().nonzero()[:, 0]].abs().max()) > 0
 
 
 def test_init_reopen_restarts_a_blending_weight(tiny_dataset, tmp_path, render):

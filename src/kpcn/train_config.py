@@ -159,7 +159,8 @@ class TrainConfig:
     #: widths): each group keeps the file's first channels. Unlike extending, the narrowed model does not compute
     #: the file's function: it is a start for training, not a conversion. U-Net kernels may be smaller than the
     #: file's (``kernel_size``, ``coarse_kernel``): each level starts from the centre taps of the file's logits
-    #: (init_extend alone lets them be larger: the file's kernels with new outer taps of nearly no weight)
+    #: (init_extend alone lets them be larger: the file's logits as the centre taps, new ones copied from their
+    #: nearest, a little lower)
     init_prune: bool = False
     #: U-Net blending weights to restart, each ``"<branch>:<level>"``: the weight ``α`` with which kernel level
     #: ``level`` (0: full resolution) takes in the next coarser one restarts at ``sigmoid(-1) ≈ 0.27`` at every
