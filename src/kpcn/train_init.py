@@ -98,8 +98,8 @@ def _resize_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module
                 out[f"{name}.{p}"] = torch.cat([_resized_taps(v[:ks * ks], ks, km, p, prune, path, b,
                                                               f"level {level}"), v[ks * ks:]])
         ka_s, ka_m = getattr(src, "albedo_kernel", 0), getattr(dst, "albedo_kernel", 0)
-        if ka_s and ka_m and ka_s != ka_m:  # the albedo kernel's logits, after the level-0 kernel and blend rows
-            at = dst.head_layout[0] + dst.head_layout[1]
+        if ka_s and ka_m and ka_s != ka_m:  # the albedo kernel's logits, after the (resized) level-0 kernel's rows
+            at = dst.head_layout[0] + src.head_layout[1]  # and the file's blend rows
             for p in ("weight", "bias"):
                 v = out[f"{b}.head.{p}"]
                 out[f"{b}.head.{p}"] = torch.cat([v[:at], _resized_taps(v[at:at + ka_s * ka_s], ka_s, ka_m, p, prune,

@@ -246,7 +246,7 @@ class UNetBranch(nn.Module):
         """
         h_in, w_in = x.shape[-2:]
         h, decoded = self.decode(self.encode(x), summary)
-        s, kk, off = self.cfg.logit_scale, self.cfg.kernel_size**2, self.cfg.offset
+        s, off = self.cfg.logit_scale, self.cfg.offset
         if off:  # full resolution: the finest level upsampled, beside the guide of the full-resolution features
             # a 1x1 conv and a ReLU are per pixel, so they commute with replicate padding: pad the
             # guide's few channels rather than the full-resolution features
