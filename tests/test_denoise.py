@@ -540,6 +540,28 @@ def test_bench_denoise_rounds_take_turns_and_pool_every_call(capsys, tmp_path):
     assert "--rounds must be >= 1" in capsys.readouterr().err
 
 
+def test_bench_denoise_times_the_native_kernels_against_the_pytorch_paths(capsys, tmp_path, monkeypatch):
+    """``--kernels native pytorch``: the same model twice in one run, each in a process whose ``KPCN_NATIVE`` says
+    which kernels it ran (the status each reports); an unknown name is refused."""
+    import json
+
+    from kpcn.bench import SUBCOMMANDS
+    from kpcn.ops import native
+
+    monkeypatch.setenv("KPCN_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "b.json"
+    rc = SUBCOMMANDS["denoise"](["--sizes", "40", "--models", "small_unet", "--no-oidn", "--kernels", "native",
+                                 "pytorch", "--threads", "1", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "small_unet+native" in text and "small_unet+pytorch" in text
+    by = {r["model"]: r for r in json.loads(out.read_text())["results"]}
+    assert by["small_unet+pytorch"]["native"] == "off (KPCN_NATIVE=0)"
+    want = "on: loaded " if native._compiler() is not None else "unavailable: "
+    assert by["small_unet+native"]["native"].startswith(want), by["small_unet+native"]["native"]
+    assert SUBCOMMANDS["denoise"](["--sizes", "24", "--no-oidn", "--kernels", "fast"]) == 2
+    assert "kernels: expected native or pytorch" in capsys.readouterr().err
+
+
 def test_bench_takes_a_bare_model_name_as_its_default_weights():
     """``--models unet_kpcn`` times the weights ``denoise`` would use (the registered default and its config);
     a name that is neither a config, a model nor a fallback is refused."""

@@ -50,8 +50,10 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile: int, threads: int | None, repeats: int,
-                     rows: bool = True, precision: str = "auto") -> dict:
+                     rows: bool = True, precision: str = "auto", kernels: str = "native") -> dict:
     import gc
+
+    os.environ["KPCN_NATIVE"] = "1" if kernels == "native" else "0"  # this spawned process's own environment
 
     import numpy as np
     import torch
@@ -84,6 +86,9 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
         from kpcn.models.cost import macs_per_pixel
 
         extra["macs_per_px"] = macs_per_pixel(model)
+        from kpcn.ops import native
+
+        extra["native"] = native.status()
 
         def run():
             r = denoise_result(frame, model, tile=tile, device="cpu", rows=rows, precision=precision)
@@ -151,9 +156,9 @@ def _oidn_set_threads(n: int) -> str:
 
 
 def _run_denoise_config(impl, path, model_name, model_kw, tile, threads, repeats, timeout, rows=True,
-                        precision="auto") -> dict:
-    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats, rows, precision),
-                        timeout)
+                        precision="auto", kernels="native") -> dict:
+    return run_isolated(_denoise_measure, (impl, path, model_name, model_kw, tile, threads, repeats, rows, precision,
+                                           kernels), timeout)
 
 
 def _merge_rounds(rs: list[dict]) -> dict:
@@ -194,6 +199,10 @@ class DenoiseBenchConfig:
     precisions: list[str] = field(default_factory=lambda: ["auto"], metadata={
         "help": "kpcn's precision(s): auto, float32, bfloat16; each model runs at each (rows labelled model@precision "
                 "when more than one)"})
+    kernels: list[str] = field(default_factory=lambda: ["native"], metadata={
+        "help": "kpcn's element-wise kernels: native (kpcn.ops.native, compiled for this CPU where a C compiler is; "
+                "else the PyTorch paths), pytorch (KPCN_NATIVE=0); both: each model runs with each (rows labelled "
+                "model+kernels), the A/B of the native kernels in one run"})
     tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default: auto, the whole frame up to 1920x1080; --skip: 64)"})
     scene: str = field(default="random:3", metadata={"help": "scene to render"})
     spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
@@ -256,8 +265,13 @@ def bench_denoise(argv: list[str]) -> int:
         print(f"python -m kpcn.bench denoise: precisions: expected {', '.join(PRECISIONS[:-1])} or {PRECISIONS[-1]}, "
               f"got {bad or '[]'}", file=sys.stderr)
         return 2
-    many = len(args.precisions) > 1
-    labels = [(f"{name}@{p}" if many else name, name, p) for name in args.models for p in args.precisions]
+    bad = [k for k in args.kernels if k not in ("native", "pytorch")]
+    if bad or not args.kernels:
+        print(f"python -m kpcn.bench denoise: kernels: expected native or pytorch, got {bad or '[]'}", file=sys.stderr)
+        return 2
+    many, both = len(args.precisions) > 1, len(args.kernels) > 1
+    labels = [((f"{name}@{p}" if many else name) + (f"+{k}" if both else ""), name, p, k)
+              for name in args.models for p in args.precisions for k in args.kernels]
 
     tmp = None
     frames_dir = args.frames_dir
@@ -273,16 +287,16 @@ def bench_denoise(argv: list[str]) -> int:
                 print(f"rendering {args.scene} {w}x{h} at {args.spp} spp ...", file=sys.stderr, flush=True)
                 secs = _render_bench_frame(args.scene, (w, h), args.spp, args.seed, path)
                 print(f"  rendered in {secs:.1f} s", file=sys.stderr, flush=True)
-            jobs = [("kpcn", label, name, p) for label, name, p in labels] + \
-                ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto")])
-            rounds: dict[str, list[dict]] = {name: [] for _, name, _, _ in jobs}
+            jobs = [("kpcn", label, name, p, k) for label, name, p, k in labels] + \
+                ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto", "native")])
+            rounds: dict[str, list[dict]] = {name: [] for _, name, _, _, _ in jobs}
             for _ in range(args.rounds):  # every configuration once a round, in the same order
-                for impl, name, model, precision in jobs:
+                for impl, name, model, precision, kernels in jobs:
                     model_name, kw = (specs[model][0], specs[model][1]) if impl == "kpcn" else ("", {})
                     print(f"running {name:>8} {w}x{h} ...", file=sys.stderr, flush=True)
                     t0 = time.perf_counter()
                     r = _run_denoise_config(impl, path, model_name, kw, tile, args.threads, args.repeats, args.timeout,
-                                            args.rows, precision)
+                                            args.rows, precision, kernels)
                     r.update(impl=impl, model=name, size=f"{w}x{h}", wall_s=time.perf_counter() - t0)
                     print(f"  {r.get('status')}: {r.get('median_s', float('nan')):.2f} s", file=sys.stderr, flush=True)
                     rounds[name].append(r)
@@ -302,7 +316,9 @@ def bench_denoise(argv: list[str]) -> int:
           "time = median wall seconds (frame already in memory, model built); cpu = process CPU seconds "
           "(less sensitive to other load on the machine, but it counts OpenMP spin-waiting)")
     print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
-    mw = max([8] + [len(n) for n, _, _ in labels])
+    for status in sorted({r["native"] for r in ok if "native" in r}):
+        print(f"native kernels: {status}")
+    mw = max([8] + [len(n) for n, _, _, _ in labels])
     header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  {'kMAC/px':>8}  notes"
     print(header)
     print("-" * len(header))
@@ -319,7 +335,7 @@ def bench_denoise(argv: list[str]) -> int:
         by = {(r["size"], r["model"]): r for r in results}
         for w, h in args.sizes:
             o = by.get((f"{w}x{h}", "oidn"), {})
-            for name, _, _ in labels:
+            for name, _, _, _ in labels:
                 k = by.get((f"{w}x{h}", name), {})
                 print(f"{f'{w}x{h}':>10}  {name:<{mw}}  {_ratio(k, o, 'median_s'):>8}  {_ratio(k, o, 'mem_mb'):>8}")
     if args.json:

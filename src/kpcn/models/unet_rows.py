@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
+from ..ops.softmax_apply import softmax_apply_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
@@ -54,6 +55,28 @@ def _apply(padded: torch.Tensor, weights, k: int, mix: torch.Tensor | None = Non
     w, norm = weights
     f = kernel_apply_padded(padded, w, k)
     return f.div_(norm) if norm is not None else f
+
+
+def _softmax_apply(logits: torch.Tensor, padded: torch.Tensor, k: int, s: float,
+                   mix: torch.Tensor | None = None) -> torch.Tensor:
+    """The bounded-softmax kernels of ``logits`` ``(1, k², H, W)`` (a temporary: made weights in place on the PyTorch
+    path) applied to ``padded`` ``(1, C, H + 2r, W + 2r)``: in one native pass where it applies
+    (:func:`~kpcn.ops.softmax_apply.softmax_apply_native`), else :func:`_softmax_weights` and :func:`_apply`."""
+    if mix is None:
+        out = softmax_apply_native(logits, padded, k, s)
+        if out is not None:
+            return out
+    return _apply(padded, _softmax_weights(logits, s, inplace=True), k, mix)
+
+
+def _stacked(signals: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The signals ``{key: (1, 3, H, W)}`` side by side ``(1, 3 n, H, W)``: one application of shared kernels."""
+    values = list(signals.values())
+    return values[0] if len(values) == 1 else torch.cat(values, dim=1)
+
+
+def _unstacked(keys, t: torch.Tensor) -> dict[str, torch.Tensor]:
+    return dict(zip(keys, t.split(3, dim=1)))
 
 
 class RowStream:
@@ -180,7 +203,8 @@ class RowStream:
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kc = cfg.level_kernel(1)
             kk, r = kc**2, kc // 2
-            weights, alphas, gains, mixes = [], [], [], []
+            colour = _stacked(self._half)  # every signal filtered with the same kernels at once
+            filtered, alphas, gains = [], [], []
             for level in range(1, cfg.kernel_scales):
                 hd, d = net.heads[level - 1], decoded[level - 1]
                 # the kernel logits and the other channels as two products: the logits contiguous, made weights in place
@@ -189,16 +213,14 @@ class RowStream:
                 alpha, gain = blend_weights(extra[:, :nb]) if nb else (None, None)
                 alphas.append(alpha)
                 gains.append(gain)
-                mixes.append(torch.sigmoid(extra[:, nb:]) if net.mix else None)
-                weights.append(_softmax_weights(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), cfg.logit_scale, inplace=True))
-            for key, colour in self._half.items():
-                filtered = []
-                for level, w in enumerate(weights):
-                    if level:
-                        colour = self._pool(colour)
-                    padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
-                    filtered.append(_apply(padded, w, kc, mixes[level]))
-                self._coarse[key] = combine_levels(filtered, alphas, gains)  # gains: None each without band_gain
+                mix = torch.sigmoid(extra[:, nb:]) if net.mix else None
+                if level > 1:
+                    colour = self._pool(colour)
+                padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
+                filtered.append(_softmax_apply(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), padded, kc, cfg.logit_scale,
+                                               mix))
+            # gains: None each without band_gain
+            self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains))
         self._half = {}
 
     @property
@@ -233,11 +255,12 @@ class RowStream:
         out = {}
         if self._albedo is not None:  # before the logits' softmax (in place in z)
             out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:kk + nb + na], e0, e1)[..., i0:i0 + n, :]
-        weights = _softmax_weights(z[:, :kk], cfg.logit_scale, inplace=True)  # z is this band's own
-        for key, full in self._full.items():
-            colour = F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else \
-                full[..., e0:e1, :]
-            f = _apply(colour, weights, cfg.kernel_size, mix)
+        # every signal's rows, side by side: filtered with the same kernels at once
+        colour = _stacked({key: F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else
+                           full[..., e0:e1, :] for key, full in self._full.items()})
+        # z is this band's own: its logits made weights in place on the PyTorch path
+        filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
+        for key, f in _unstacked(self._full, filtered).items():
             if alpha is None:
                 out[key] = f
                 continue
@@ -259,6 +282,6 @@ class RowStream:
             albedo[..., e0:e1, :]
         gate = gate_of(za[:, -1:], self.cfg.albedo_gate_gain)
         # za is this band's own (a slice of z): its logits made weights in place
-        filtered = _apply(padded, _softmax_weights(za[:, :-1], self.cfg.logit_scale, inplace=True), ka)
+        filtered = _softmax_apply(za[:, :-1], padded, ka, self.cfg.logit_scale)
         bound = self._albedo[:, 3:, e0:e1, :] if self._albedo.shape[1] > 3 else None
         return gated_albedo(albedo[..., e0:e1, :], filtered, gate, bound)

@@ -1,0 +1,56 @@
+"""Bounded-softmax kernels applied in one native pass (inference): :func:`softmax_apply_native`.
+
+``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
+(``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
+(:func:`kpcn.models.kernel_heads._softmax_weights`, then :func:`~kpcn.ops.kernel_apply.kernel_apply_padded`) in
+one loop of the C library :mod:`kpcn.ops.native`, the rows split between ``torch.get_num_threads()`` threads
+(torch's own OpenMP pool).
+Where the library or the inputs do not fit (no compiler, ``KPCN_NATIVE=0``, autograd, not float32 on the CPU,
+``s > 80``) it returns None and the caller runs its PyTorch path.
+"""
+from __future__ import annotations
+
+import torch
+
+from . import native
+
+__all__ = ["softmax_apply_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL"]
+
+#: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
+MAX_NATIVE_SCALE = 80.0
+#: the largest kernel the native path takes (its per-row weights, k² × 64 floats, live on a thread's stack)
+MAX_NATIVE_KERNEL = 31
+
+
+def _usable(logits: torch.Tensor, padded: torch.Tensor, k: int, s: float) -> bool:
+    return (logits.dtype == torch.float32 and padded.dtype == torch.float32 and logits.device.type == "cpu"
+            and padded.device.type == "cpu" and logits.dim() == 4 and padded.dim() == 4
+            and not (torch.is_grad_enabled() and (logits.requires_grad or padded.requires_grad))
+            and logits.stride(-1) == 1 and padded.stride(-1) == 1 and 0 < s <= MAX_NATIVE_SCALE
+            and k % 2 == 1 and k <= MAX_NATIVE_KERNEL and logits.shape[1] == k * k)
+
+
+def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size: int,
+                         logit_scale: float) -> torch.Tensor | None:
+    """The bounded-softmax kernels of ``logits`` ``(B, k², H, W)`` applied to ``padded`` ``(B, C, H + 2r, W + 2r)``
+    (``r = k // 2``, already padded): ``(B, C, H, W)`` float32, or None where the native path does not apply.
+
+    ``logits`` may be a slice of a larger tensor (its rows and taps strided), each row contiguous."""
+    k, s = int(kernel_size), float(logit_scale)
+    if not _usable(logits, padded, k, s):
+        return None
+    b, _, h, w = logits.shape
+    if padded.shape[0] != b or padded.shape[-2] != h + k - 1 or padded.shape[-1] != w + k - 1:
+        raise ValueError(f"softmax_apply_native: padded {tuple(padded.shape)} does not fit logits "
+                         f"{tuple(logits.shape)} with kernel size {k}")
+    lib = native.library()
+    if lib is None:
+        return None
+    c = padded.shape[1]
+    out = torch.empty(b, c, h, w, dtype=torch.float32)
+    threads = max(1, min(torch.get_num_threads(), h))
+    for i in range(b):
+        z, img, o = logits[i], padded[i], out[i]
+        lib.softmax_apply_rows(z.data_ptr(), z.stride(0), z.stride(1), k, s, img.data_ptr(), img.stride(0),
+                               img.stride(1), c, o.data_ptr(), o.stride(0), o.stride(1), h, w, threads)
+    return out

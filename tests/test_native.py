@@ -1,0 +1,150 @@
+"""The native (C) inference kernels (:mod:`kpcn.ops.native`, :func:`kpcn.ops.softmax_apply.softmax_apply_native`):
+built here, the same function as the PyTorch path they replace, refused where they do not apply, and a
+missing compiler costs nothing but the speed."""
+from __future__ import annotations
+
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from kpcn import inference
+from kpcn.models import create_model, unet_rows
+from kpcn.models.kernel_heads import _softmax_weights
+from kpcn.ops import native
+from kpcn.ops.kernel_apply import kernel_apply_padded
+from kpcn.ops.softmax_apply import MAX_NATIVE_SCALE, softmax_apply_native
+
+HAVE_CC = native._compiler() is not None
+
+
+@pytest.fixture
+def fresh_native(monkeypatch, tmp_path):
+    """A cache folder of this test's own, the library forgotten before and after."""
+    monkeypatch.setenv("KPCN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("KPCN_NATIVE", raising=False)
+    native.reset()
+    yield tmp_path / "cache" / "native"
+    native.reset()
+
+
+def _pytorch_path(logits, padded, k, s):
+    w, norm = _softmax_weights(logits.clone(), s)
+    out = kernel_apply_padded(padded, w, k)
+    return out.div_(norm) if norm is not None else out
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+def test_the_library_builds_and_loads_here(fresh_native):
+    assert native.library() is not None
+    assert native.status().startswith("on: loaded ")
+    built = list(fresh_native.glob("kpcn_native_*.so"))
+    assert len(built) == 1, built
+    stamp = built[0].stat().st_mtime_ns
+    native.reset()
+    assert native.library() is not None  # found in the cache, not built again
+    assert [p.stat().st_mtime_ns for p in fresh_native.glob("kpcn_native_*.so")] == [stamp]
+    assert not list(fresh_native.glob("*.so")) == [] and not list(fresh_native.glob("tmp*"))  # no half-written file
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("k,channels,batch,width,s", [(1, 3, 1, 70, 16.0), (3, 3, 1, 131, 16.0), (5, 3, 2, 64, 16.0),
+                                                       (5, 9, 1, 200, 4.0), (7, 6, 1, 65, 80.0), (9, 3, 1, 33, 1.0)])
+def test_softmax_apply_is_the_pytorch_path(k, channels, batch, width, s):
+    """Random logits (a slice of a larger tensor, as the heads give them; some far beyond the bound) and images:
+    the one native pass equals the softmax weights and the shift-loop application, widths off the 64-pixel blocks."""
+    g = torch.Generator().manual_seed(k * 100 + channels)
+    h = 19
+    big = torch.randn(batch, k * k + 3, h, width, generator=g) * 6.0
+    big[:, :, 0, :5] = torch.tensor([1e4, -1e4, 0.0, 300.0, -300.0])[:, None].expand(5, k * k + 3).T[None]
+    logits = big[:, 1:1 + k * k]
+    padded = torch.rand(batch, channels, h + k - 1, width + k - 1, generator=g) * 10.0
+    got = softmax_apply_native(logits, padded, k, s)
+    assert got is not None and got.shape == (batch, channels, h, width)
+    want = _pytorch_path(logits, padded, k, s)
+    assert torch.allclose(got, want, rtol=2e-5, atol=1e-6), float((got - want).abs().max())
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+def test_softmax_apply_keeps_a_constant_and_reads_the_right_taps():
+    """A constant image stays constant whatever the kernels; one-hot kernels (one logit far above the rest) copy
+    the pixel at their tap's offset."""
+    k, h, w = 5, 12, 77
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(1, k * k, h, w, generator=g) * 20.0
+    const = torch.full((1, 3, h + k - 1, w + k - 1), 0.7)
+    assert torch.allclose(softmax_apply_native(logits, const, k, 16.0), torch.full((1, 3, h, w), 0.7), atol=1e-6)
+    image = torch.rand(1, 3, h + k - 1, w + k - 1, generator=g)
+    for t in (0, 7, 24):
+        onehot = torch.full((1, k * k, h, w), -1e4)
+        onehot[:, t] = 1e4  # weight 1 against e^-32 for the rest (s = 16)
+        i, j = divmod(t, k)
+        got = softmax_apply_native(onehot, image, k, 16.0)
+        assert torch.allclose(got, image[..., i:i + h, j:j + w], atol=1e-6), t
+
+
+def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
+    k = 3
+    logits, padded = torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 8, 10)
+    assert softmax_apply_native(logits.double(), padded.double(), k, 16.0) is None
+    assert softmax_apply_native(logits, padded, k, MAX_NATIVE_SCALE * 2) is None
+    assert softmax_apply_native(logits.requires_grad_(), padded, k, 16.0) is None
+    assert softmax_apply_native(torch.zeros(1, 9, 8, 6).transpose(-1, -2), padded, k, 16.0) is None  # columns strided
+    if HAVE_CC:
+        with pytest.raises(ValueError, match="does not fit"):
+            softmax_apply_native(torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 6, 10), k, 16.0)
+    monkeypatch.setenv("KPCN_NATIVE", "0")
+    assert native.library() is None and native.status() == "off (KPCN_NATIVE=0)"
+    assert softmax_apply_native(torch.zeros(1, 9, 6, 8), padded, k, 16.0) is None
+
+
+def _default_like_model():
+    torch.manual_seed(0)
+    cfg = dict(widths=[8, 8, 12, 12], stem="half", kernel_scales=4, out_init_gain=5.0, band_gain=True, albedo_kernel=3,
+               up_kernel=1, radiance_pool=True)
+    return create_model("unet_kpcn", **cfg).eval()
+
+
+@pytest.fixture
+def rows_for_small_frames(monkeypatch):
+    from kpcn.inference import rows
+
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", 0)
+
+
+def test_a_real_frame_denoises_the_same_without_the_library(render, fresh_native, monkeypatch, rows_for_small_frames):
+    """A real render through the row bands (the default's options): with the native kernels (each call counted),
+    without a compiler (a clear warning, nothing lost) and with ``KPCN_NATIVE=0``, the same image."""
+    frame = render("test:glossy", spp=4, seed=2, resolution=(96, 80))
+    model = _default_like_model()
+    calls = []
+    real = unet_rows.softmax_apply_native
+
+    def counted(*a):
+        out = real(*a)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(unet_rows, "softmax_apply_native", counted)
+    run = lambda: inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")  # noqa: E731
+    with_lib = run()
+    assert with_lib.stats.row_bands > 0
+    if HAVE_CC:
+        assert calls and all(calls), "the row bands must take the native path where the library builds"
+    monkeypatch.setenv("CC", str(fresh_native / "no-such-compiler"))
+    native.reset()
+    calls.clear()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        without = run()
+    assert calls and not any(calls)
+    assert any("native kernels unavailable" in str(w.message) and "no C compiler" in str(w.message) for w in caught)
+    assert "unavailable: no C compiler" in native.status()
+    monkeypatch.setenv("KPCN_NATIVE", "0")
+    off = run()
+    scale = float(np.abs(without.color).max())
+    assert float(np.abs(with_lib.color - without.color).max()) < 2e-5 * scale
+    np.testing.assert_array_equal(without.color, off.color)
