@@ -1,4 +1,4 @@
-"""The native (C) inference kernels (:mod:`kpcn.ops.native`, :func:`kpcn.ops.softmax_apply.softmax_apply_native`):
+"""The native (C) inference kernels (:mod:`kpcn.ops.native`, :func:`kpcn.ops.fused.softmax_apply_native`):
 built here, the same function as the PyTorch path they replace, refused where they do not apply, and a
 missing compiler costs nothing but the speed."""
 from __future__ import annotations
@@ -16,7 +16,9 @@ from kpcn.models import create_model, unet_rows
 from kpcn.models.kernel_heads import _softmax_weights
 from kpcn.ops import native
 from kpcn.ops.kernel_apply import kernel_apply_padded
-from kpcn.ops.softmax_apply import MAX_NATIVE_SCALE, softmax_apply_native
+from kpcn.models.kernel_heads import GuidedHead
+from kpcn.models.layers import upsample2
+from kpcn.ops.fused import MAX_NATIVE_SCALE, softmax_apply_native, upsample_guide_native
 
 HAVE_CC = native._compiler() is not None
 
@@ -86,6 +88,29 @@ def test_softmax_apply_keeps_a_constant_and_reads_the_right_taps():
         assert torch.allclose(got, image[..., i:i + h, j:j + w], atol=1e-6), t
 
 
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("guide_dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("rows,width", [(3, 1), (5, 37), (10, 64)])
+def test_upsample_guide_is_the_guided_heads_band(guide_dtype, rows, width):
+    """The band of the guided head's output: bilinear upsampling with context rows, then the guide's product (in
+    bfloat16 the guide is kept so), as :func:`upsample2` and :meth:`GuidedHead.add_guide_part_` make it."""
+    g = torch.Generator().manual_seed(rows * 7 + width)
+    o, cg, cc = 11, 5, 6
+    head = GuidedHead(cc + cg, o, 1)
+    with torch.no_grad():
+        head.weight.normal_(generator=g)
+    big = torch.randn(1, o + 2, rows + 4, width, generator=g)
+    low = big[:, 1:1 + o, 1:rows + 3]  # a slice, as the stream's clamped rows are
+    guide = torch.randn(1, cg, 2 * rows + 9, 2 * width, generator=g).to(guide_dtype)[..., 3:3 + 2 * rows, :]
+    with torch.no_grad():
+        want = head.add_guide_part_(upsample2(low, context_rows=True), guide)
+        got = upsample_guide_native(low, guide, head.weight[:, cc:, 0, 0])
+    assert got is not None and got.shape == want.shape == (1, o, 2 * rows, 2 * width)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), float((got - want).abs().max())
+    with pytest.raises(ValueError, match="do not fit"):
+        upsample_guide_native(low, guide[..., 1:, :], head.weight[:, cc:, 0, 0].detach())
+
+
 def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     k = 3
     logits, padded = torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 8, 10)
@@ -96,9 +121,14 @@ def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     if HAVE_CC:
         with pytest.raises(ValueError, match="does not fit"):
             softmax_apply_native(torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 6, 10), k, 16.0)
+    low, guide, wg = torch.zeros(1, 4, 5, 8), torch.zeros(1, 2, 6, 16), torch.zeros(4, 2)
+    assert upsample_guide_native(low.double(), guide, wg) is None
+    assert upsample_guide_native(low.requires_grad_(), guide, wg) is None
+    assert upsample_guide_native(torch.zeros(2, 4, 5, 8), torch.zeros(2, 2, 6, 16), wg) is None
     monkeypatch.setenv("KPCN_NATIVE", "0")
     assert native.library() is None and native.status() == "off (KPCN_NATIVE=0)"
     assert softmax_apply_native(torch.zeros(1, 9, 6, 8), padded, k, 16.0) is None
+    assert upsample_guide_native(torch.zeros(1, 4, 5, 8), guide, wg) is None
 
 
 def _default_like_model():
@@ -121,26 +151,29 @@ def test_a_real_frame_denoises_the_same_without_the_library(render, fresh_native
     frame = render("test:glossy", spp=4, seed=2, resolution=(96, 80))
     model = _default_like_model()
     calls = []
-    real = unet_rows.softmax_apply_native
 
-    def counted(*a):
-        out = real(*a)
-        calls.append(out is not None)
-        return out
+    def counted(real):
+        def call(*a):
+            out = real(*a)
+            calls.append((real.__name__, out is not None))
+            return out
+        return call
 
-    monkeypatch.setattr(unet_rows, "softmax_apply_native", counted)
+    for name in ("softmax_apply_native", "upsample_guide_native"):
+        monkeypatch.setattr(unet_rows, name, counted(getattr(unet_rows, name)))
     run = lambda: inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")  # noqa: E731
     with_lib = run()
     assert with_lib.stats.row_bands > 0
+    assert {name for name, _ in calls} == {"softmax_apply_native", "upsample_guide_native"}
     if HAVE_CC:
-        assert calls and all(calls), "the row bands must take the native path where the library builds"
+        assert all(ok for _, ok in calls), "the row bands must take the native path where the library builds"
     monkeypatch.setenv("CC", str(fresh_native / "no-such-compiler"))
     native.reset()
     calls.clear()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         without = run()
-    assert calls and not any(calls)
+    assert calls and not any(ok for _, ok in calls)
     assert any("native kernels unavailable" in str(w.message) and "no C compiler" in str(w.message) for w in caught)
     assert "unavailable: no C compiler" in native.status()
     monkeypatch.setenv("KPCN_NATIVE", "0")

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from ..ops.softmax_apply import softmax_apply_native
+from ..ops.fused import softmax_apply_native, upsample_guide_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
@@ -61,7 +61,7 @@ def _softmax_apply(logits: torch.Tensor, padded: torch.Tensor, k: int, s: float,
                    mix: torch.Tensor | None = None) -> torch.Tensor:
     """The bounded-softmax kernels of ``logits`` ``(1, k², H, W)`` (a temporary: made weights in place on the PyTorch
     path) applied to ``padded`` ``(1, C, H + 2r, W + 2r)``: in one native pass where it applies
-    (:func:`~kpcn.ops.softmax_apply.softmax_apply_native`), else :func:`_softmax_weights` and :func:`_apply`."""
+    (:func:`~kpcn.ops.fused.softmax_apply_native`), else :func:`_softmax_weights` and :func:`_apply`."""
     if mix is None:
         out = softmax_apply_native(logits, padded, k, s)
         if out is not None:
@@ -246,8 +246,10 @@ class RowStream:
         low = clamped_rows(self._low, e0 // 2 - 1, e1 // 2 + 1)
         if self._low_bias is not None:
             low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
-        z = upsample2(low, context_rows=True)
-        z = self.branch.head.add_guide_part_(z, self._guide[..., e0:e1, :])
+        guide, head = self._guide[..., e0:e1, :], self.branch.head
+        z = upsample_guide_native(low, guide, head.weight[:, head.in_channels - guide.shape[1]:, 0, 0])
+        if z is None:  # the PyTorch path: the same, in passes
+            z = head.add_guide_part_(upsample2(low, context_rows=True), guide)
         _, nb, na, nm = self.branch.head_layout
         alpha, gain = blend_weights(z[:, kk:kk + nb]) if cfg.kernel_scales > 1 else (None, None)
         mix = torch.sigmoid(z[:, kk + nb + na:]) if nm else None

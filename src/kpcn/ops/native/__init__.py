@@ -31,7 +31,7 @@ import torch  # noqa: F401  (loaded first: its libgomp.so.1 is the one the libra
 __all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "FLAGS"]
 
 #: the C sources compiled into the one library
-SOURCES = ("softmax_apply.c",)
+SOURCES = ("softmax_apply.c", "upsample_guide.c")
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
 #: no flag that changes a result beyond it (no -ffast-math)
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp", "-fPIC", "-shared", "-std=c99")
@@ -108,6 +108,9 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     i64, i32, ptr, f32 = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, ctypes.c_float
     lib.softmax_apply_rows.argtypes = [ptr, i64, i64, i32, f32, ptr, i64, i64, i32, ptr, i64, i64, i32, i32, i32]
     lib.softmax_apply_rows.restype = None
+    lib.upsample_guide_rows.argtypes = [ptr, i64, i64, i32, i32, ptr, i64, i64, i32, i32, ptr, i32, ptr, i64, i64,
+                                        ptr, i32]
+    lib.upsample_guide_rows.restype = None
     return lib, f"loaded {target}"
 
 

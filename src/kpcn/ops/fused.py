@@ -1,4 +1,9 @@
-"""Bounded-softmax kernels applied in one native pass (inference): :func:`softmax_apply_native`.
+"""Inference steps of the U-Net's row bands fused into one native pass each (:mod:`kpcn.ops.native`).
+
+Each returns None where the library or its inputs do not fit (no compiler, ``KPCN_NATIVE=0``, autograd, not
+float32 on the CPU, ...), and the caller runs its PyTorch path: the same function to float rounding.
+
+:func:`softmax_apply_native`: bounded-softmax kernels applied.
 
 ``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
 (``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
@@ -14,7 +19,7 @@ import torch
 
 from . import native
 
-__all__ = ["softmax_apply_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL"]
+__all__ = ["softmax_apply_native", "upsample_guide_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0
@@ -53,4 +58,41 @@ def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size
         z, img, o = logits[i], padded[i], out[i]
         lib.softmax_apply_rows(z.data_ptr(), z.stride(0), z.stride(1), k, s, img.data_ptr(), img.stride(0),
                                img.stride(1), c, o.data_ptr(), o.stride(0), o.stride(1), h, w, threads)
+    return out
+
+
+def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.Tensor) -> torch.Tensor | None:
+    """The guided head's full-resolution output for a band: ``upsample2(low, context_rows=True) + W_g · guide``
+    (:func:`kpcn.models.layers.upsample2`, :meth:`kpcn.models.kernel_heads.GuidedHead.add_guide_part_`).
+
+    Args:
+        low: ``(1, O, n + 2, w)`` float32, the head's half-resolution product with its bias, over the band's
+            half-resolution rows and one row of context each side.
+        guide: ``(1, G, 2n, 2w)`` float32 or bfloat16, the band's guide rows (each row contiguous).
+        weight: ``(O, G)`` float32, the head's guide weights.
+
+    Returns:
+        ``(1, O, 2n, 2w)`` float32 contiguous, or None where the native path does not apply.
+    """
+    if (torch.is_grad_enabled() and (low.requires_grad or guide.requires_grad or weight.requires_grad)) or \
+            low.dtype != torch.float32 or guide.dtype not in (torch.float32, torch.bfloat16) or \
+            low.device.type != "cpu" or guide.device.type != "cpu" or low.dim() != 4 or guide.dim() != 4 or \
+            low.shape[0] != 1 or guide.shape[0] != 1 or low.stride(-1) != 1 or guide.stride(-1) != 1:
+        return None
+    _, o, lr, lw = low.shape
+    g = guide.shape[1]
+    if lr < 3 or guide.shape[-2:] != (2 * lr - 4, 2 * lw) or tuple(weight.shape) != (o, g):
+        raise ValueError(f"upsample_guide_native: low {tuple(low.shape)} (1, O, n + 2, w), guide {tuple(guide.shape)} "
+                         f"and weight {tuple(weight.shape)} do not fit: want guide (1, G, 2n, 2w), weight (O, G)")
+    lib = native.library()
+    if lib is None:
+        return None
+    rows = 2 * lr - 4
+    out = torch.empty(1, o, rows, 2 * lw, dtype=torch.float32)
+    wg = weight.detach().to(torch.float32).contiguous()
+    threads = max(1, min(torch.get_num_threads(), rows))
+    scratch = torch.empty(threads * (g + 1) * 2 * lw, dtype=torch.float32)
+    lib.upsample_guide_rows(low.data_ptr(), low.stride(1), low.stride(2), lr, lw, guide.data_ptr(), guide.stride(1),
+                            guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), o, out.data_ptr(),
+                            out.stride(1), out.stride(2), scratch.data_ptr(), threads)
     return out
