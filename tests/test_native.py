@@ -17,8 +17,8 @@ from kpcn.models.kernel_heads import _softmax_weights
 from kpcn.ops import native
 from kpcn.ops.kernel_apply import kernel_apply_padded
 from kpcn.models.kernel_heads import GuidedHead
-from kpcn.models.layers import upsample2
-from kpcn.ops.fused import MAX_NATIVE_SCALE, softmax_apply_native, upsample_guide_native
+from kpcn.models.layers import conv1x1, pool2, transform_input, upsample2
+from kpcn.ops.fused import MAX_NATIVE_SCALE, feed_native, softmax_apply_native, upsample_guide_native
 
 HAVE_CC = native._compiler() is not None
 
@@ -111,6 +111,37 @@ def test_upsample_guide_is_the_guided_heads_band(guide_dtype, rows, width):
         upsample_guide_native(low, guide[..., 1:, :], head.weight[:, cc:, 0, 0].detach())
 
 
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("kind", ["log", "none"])
+@pytest.mark.parametrize("dtype,layout", [(torch.float32, torch.contiguous_format), (torch.bfloat16, torch.channels_last),
+                                          (torch.float32, torch.channels_last)])
+def test_feed_is_the_transformed_guide_and_pooled_features(kind, dtype, layout):
+    """A band of feature rows (values from 1e-6 to 1e5, both signs; a slice, as the stream's bands are): the guide
+    ``relu(W T(x) + b)`` and the pooled ``T(pool2(x))`` as :func:`transform_input`, :func:`pool2` and
+    :func:`conv1x1` make them, written into views of larger maps (bfloat16 rounded as torch rounds it)."""
+    g = torch.Generator().manual_seed(5)
+    c, n, w, cg = 13, 6, 2 * 75, 4
+    scale = torch.logspace(-6, 5, c)[None, :, None, None]
+    x = (torch.randn(1, c + 2, n + 2, w, generator=g) * scale.new_ones(1, c + 2, 1, 1))[:, 1:1 + c, 1:1 + n] * scale
+    weight, bias = torch.randn(cg, c, 1, 1, generator=g) * 0.3, torch.randn(cg, generator=g)
+    guide_map = torch.zeros(1, cg, n + 4, w, dtype=dtype)
+    pooled_map = torch.empty(1, c, n // 2 + 3, w // 2, dtype=dtype, memory_format=layout).zero_()
+    guide, pooled = guide_map[..., 2:2 + n, :], pooled_map[..., 1:1 + n // 2, :]
+    assert feed_native(x, kind, weight, bias, guide, pooled)
+    t = transform_input(x, kind)
+    want_guide = torch.relu(conv1x1(t, weight, bias)).to(dtype)
+    want_pooled = transform_input(pool2(x), kind).to(dtype)
+    ulp = 2.0**-7 if dtype == torch.bfloat16 else 1e-6  # one rounding step of the stored type, relative
+    assert torch.allclose(pooled.float(), want_pooled.float(), rtol=ulp, atol=1e-6)
+    assert torch.allclose(guide.float(), want_guide.float(), rtol=ulp, atol=1e-4 * float(want_guide.abs().max()))
+    if dtype == torch.bfloat16:  # rounded as torch rounds: the same bfloat16 for nearly every value
+        assert (pooled.float() == want_pooled.float()).float().mean() > 0.99
+    assert not guide_map[..., :2, :].any() and not pooled_map[..., :1, :].any()  # nothing outside the views
+    assert feed_native(x, kind, None, None, None, pooled)  # no guide (a wider guide trails the bands)
+    with pytest.raises(ValueError, match="n and W even"):
+        feed_native(x[..., 1:, :], kind, weight, bias, guide[..., 1:, :], pooled)
+
+
 def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     k = 3
     logits, padded = torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 8, 10)
@@ -125,8 +156,14 @@ def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     assert upsample_guide_native(low.double(), guide, wg) is None
     assert upsample_guide_native(low.requires_grad_(), guide, wg) is None
     assert upsample_guide_native(torch.zeros(2, 4, 5, 8), torch.zeros(2, 2, 6, 16), wg) is None
+    x, pooled = torch.zeros(1, 4, 6, 8), torch.zeros(1, 4, 3, 4)
+    assert not feed_native(x, "logvar", None, None, None, pooled)  # not a transform it computes
+    assert not feed_native(x.double(), "log", None, None, None, pooled)
+    assert not feed_native(torch.zeros(1, 65, 6, 8), "log", None, None, None, torch.zeros(1, 65, 3, 4))
+    assert not feed_native(x, "log", None, None, None, pooled.half())
     monkeypatch.setenv("KPCN_NATIVE", "0")
     assert native.library() is None and native.status() == "off (KPCN_NATIVE=0)"
+    assert not feed_native(x, "log", None, None, None, pooled)
     assert softmax_apply_native(torch.zeros(1, 9, 6, 8), padded, k, 16.0) is None
     assert upsample_guide_native(torch.zeros(1, 4, 5, 8), guide, wg) is None
 
@@ -155,16 +192,16 @@ def test_a_real_frame_denoises_the_same_without_the_library(render, fresh_native
     def counted(real):
         def call(*a):
             out = real(*a)
-            calls.append((real.__name__, out is not None))
+            calls.append((real.__name__, out is not None and out is not False))
             return out
         return call
 
-    for name in ("softmax_apply_native", "upsample_guide_native"):
+    for name in ("softmax_apply_native", "upsample_guide_native", "feed_native"):
         monkeypatch.setattr(unet_rows, name, counted(getattr(unet_rows, name)))
     run = lambda: inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")  # noqa: E731
     with_lib = run()
     assert with_lib.stats.row_bands > 0
-    assert {name for name, _ in calls} == {"softmax_apply_native", "upsample_guide_native"}
+    assert {name for name, _ in calls} == {"softmax_apply_native", "upsample_guide_native", "feed_native"}
     if HAVE_CC:
         assert all(ok for _, ok in calls), "the row bands must take the native path where the library builds"
     monkeypatch.setenv("CC", str(fresh_native / "no-such-compiler"))

@@ -74,7 +74,10 @@ def test_row_bands_equal_the_whole_frame(frame, monkeypatch, kw, band):
     res = inference.denoise_result(frame, model, tile=0, device="cpu", skip=False)
     assert whole.stats.row_bands == 0 and res.stats.row_bands == -(-128 // band), "the default must take the row path"
     assert res.color.shape == whole.color.shape and np.isfinite(res.color).all()
-    assert _rel(whole.color, res.color) < 1e-5, f"{kw} band {band}: {_rel(whole.color, res.color):.3g}"
+    # 3e-5: the native feed's log1p is not torch's to the last float bit, and the stream keeps the features in
+    # bfloat16, where such a difference flips the rounding of about one value in 10^4 (PyTorch paths: below 2e-6;
+    # a band that reads a wrong row: above 1e-3, test_row_bands_read_the_rows_around_them)
+    assert _rel(whole.color, res.color) < 3e-5, f"{kw} band {band}: {_rel(whole.color, res.color):.3g}"
 
 
 def test_row_bands_read_the_rows_around_them(frame):

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from ..ops.fused import softmax_apply_native, upsample_guide_native
+from ..ops.fused import feed_native, softmax_apply_native, upsample_guide_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
 from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
@@ -153,8 +153,11 @@ class RowStream:
         elif signals.keys() != self._full.keys():
             raise ValueError(f"RowStream.feed: layers {sorted(signals)} differ from the first band's {sorted(self._full)}")
         kind = self.cfg.input_transform
-        self._feed_guide(r0, transform_input(x, kind))
-        self._pooled[..., r0 // 2:(r0 + n) // 2, :] = transform_input(pool2(x), kind)
+        pooled = self._pooled[..., r0 // 2:(r0 + n) // 2, :]
+        g = self.branch.guide if self.cfg.guide_kernel == 1 else None  # a wider guide trails the bands (_feed_guide)
+        if g is None or not feed_native(x, kind, g.weight, g.bias, self._guide[..., r0:r0 + n, :], pooled):
+            self._feed_guide(r0, transform_input(x, kind))
+            pooled.copy_(transform_input(pool2(x), kind))
         for k, v in signals.items():
             self._full[k][..., r0:r0 + n, :] = v
             self._half[k][..., r0 // 2:(r0 + n) // 2, :] = self._pool(v)

@@ -3,7 +3,8 @@
 Each returns None where the library or its inputs do not fit (no compiler, ``KPCN_NATIVE=0``, autograd, not
 float32 on the CPU, ...), and the caller runs its PyTorch path: the same function to float rounding.
 
-:func:`softmax_apply_native`: bounded-softmax kernels applied.
+:func:`softmax_apply_native`: bounded-softmax kernels applied; :func:`upsample_guide_native`: the guided head's
+full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows.
 
 ``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
 (``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
@@ -19,10 +20,15 @@ import torch
 
 from . import native
 
-__all__ = ["softmax_apply_native", "upsample_guide_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL"]
+__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
+           "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0
+#: the most feature channels :func:`feed_native` takes (a band's transformed features live on a thread's stack)
+MAX_FEED_CHANNELS = 64
+#: the input transforms :func:`feed_native` computes (:func:`kpcn.models.layers.transform_input`)
+_FEED_TRANSFORMS = {"none": 0, "log": 1}
 #: the largest kernel the native path takes (its per-row weights, k² × 64 floats, live on a thread's stack)
 MAX_NATIVE_KERNEL = 31
 
@@ -96,3 +102,49 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
                             guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), o, out.data_ptr(),
                             out.stride(1), out.stride(2), scratch.data_ptr(), threads)
     return out
+
+
+def feed_native(x: torch.Tensor, transform: str, guide_weight: torch.Tensor | None, guide_bias: torch.Tensor | None,
+                guide: torch.Tensor | None, pooled: torch.Tensor) -> bool:
+    """A band of feature rows made into what a row stream keeps, written into the given views: ``guide`` =
+    ``relu(W · T(x) + b)`` (a 1×1 guide) and ``pooled`` = ``T(pool2(x))``, ``T`` the input transform
+    (:func:`kpcn.models.layers.transform_input`, ``"none"`` or ``"log"``).
+
+    Args:
+        x: ``(1, C, n, W)`` float32, ``n`` and ``W`` even, each row contiguous.
+        transform: ``UNetConfig.input_transform``.
+        guide_weight, guide_bias: ``(G, C)`` and ``(G,)`` (None, and ``guide`` None: no guide).
+        guide: ``(1, G, n, W)`` float32 or bfloat16, each row contiguous (a band of the stream's guide).
+        pooled: ``(1, C, n / 2, W / 2)`` float32 or bfloat16, any strides (the stream keeps it channels-last).
+
+    Returns:
+        True when written; False where the native path does not apply (nothing written).
+    """
+    if transform not in _FEED_TRANSFORMS or x.dtype != torch.float32 or x.device.type != "cpu" or x.dim() != 4 or \
+            x.shape[0] != 1 or x.shape[1] > MAX_FEED_CHANNELS or x.stride(-1) != 1 or \
+            (torch.is_grad_enabled() and x.requires_grad):
+        return False
+    outs = [pooled] + ([guide] if guide is not None else [])
+    if any(t.dtype not in (torch.float32, torch.bfloat16) or t.device.type != "cpu" for t in outs) or \
+            (guide is not None and guide.stride(-1) != 1):
+        return False
+    _, c, n, w = x.shape
+    g = 0 if guide is None else guide.shape[1]
+    if n % 2 or w % 2 or tuple(pooled.shape) != (1, c, n // 2, w // 2) or \
+            (guide is not None and (tuple(guide.shape) != (1, g, n, w) or guide_weight is None
+                                    or tuple(guide_weight.shape[:2]) != (g, c))):
+        raise ValueError(f"feed_native: x {tuple(x.shape)} (1, C, n, W), n and W even; pooled {tuple(pooled.shape)} "
+                         f"must be (1, C, n/2, W/2), guide {None if guide is None else tuple(guide.shape)} "
+                         f"(1, G, n, W) with weights (G, C)")
+    lib = native.library()
+    if lib is None:
+        return False
+    gw = guide_weight.detach().reshape(g, c).to(torch.float32).contiguous() if g else torch.zeros(1)
+    gb = guide_bias.detach().to(torch.float32).contiguous() if g and guide_bias is not None else torch.zeros(max(g, 1))
+    threads = max(1, min(torch.get_num_threads(), n // 2))
+    gp = guide.data_ptr() if g else None
+    lib.feed_rows(x.data_ptr(), x.stride(1), x.stride(2), c, n, w, _FEED_TRANSFORMS[transform], gw.data_ptr(),
+                  gb.data_ptr(), g, gp, guide.stride(1) if g else 0, guide.stride(2) if g else 0,
+                  int(g and guide.dtype == torch.bfloat16), pooled.data_ptr(), pooled.stride(1), pooled.stride(2),
+                  pooled.stride(3), int(pooled.dtype == torch.bfloat16), threads)
+    return True

@@ -31,7 +31,7 @@ import torch  # noqa: F401  (loaded first: its libgomp.so.1 is the one the libra
 __all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "FLAGS"]
 
 #: the C sources compiled into the one library
-SOURCES = ("softmax_apply.c", "upsample_guide.c")
+SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c")
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
 #: no flag that changes a result beyond it (no -ffast-math)
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp", "-fPIC", "-shared", "-std=c99")
@@ -111,6 +111,9 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     lib.upsample_guide_rows.argtypes = [ptr, i64, i64, i32, i32, ptr, i64, i64, i32, i32, ptr, i32, ptr, i64, i64,
                                         ptr, i32]
     lib.upsample_guide_rows.restype = None
+    lib.feed_rows.argtypes = [ptr, i64, i64, i32, i32, i32, i32, ptr, ptr, i32, ptr, i64, i64, i32, ptr, i64, i64, i64,
+                              i32, i32]
+    lib.feed_rows.restype = None
     return lib, f"loaded {target}"
 
 
