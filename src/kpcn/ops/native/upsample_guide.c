@@ -44,8 +44,10 @@ static void upsample_guide_row(const float *low, int64_t l_c, int64_t l_y, int l
         for (int j = 0; j < low_w; ++j) vbuf[j] = 0.75f * a[j] + 0.25f * b[j];
         float *dst = out + o * o_c + (int64_t)r * o_y;
         dst[0] = vbuf[0];
-        for (int j = 1; j < low_w; ++j) dst[2 * j] = 0.75f * vbuf[j] + 0.25f * vbuf[j - 1];
-        for (int j = 0; j < low_w - 1; ++j) dst[2 * j + 1] = 0.75f * vbuf[j] + 0.25f * vbuf[j + 1];
+        for (int j = 0; j < low_w - 1; ++j) {  /* the columns between j and j + 1, as one interleaved store */
+            dst[2 * j + 1] = 0.75f * vbuf[j] + 0.25f * vbuf[j + 1];
+            dst[2 * j + 2] = 0.75f * vbuf[j + 1] + 0.25f * vbuf[j];
+        }
         dst[width - 1] = vbuf[low_w - 1];
         for (int g = 0; g < g_channels; ++g) {
             const float wgt = wg[o * g_channels + g];
