@@ -18,7 +18,9 @@ from kpcn.ops import native
 from kpcn.ops.kernel_apply import kernel_apply_padded
 from kpcn.models.kernel_heads import GuidedHead
 from kpcn.models.layers import conv1x1, pool2, transform_input, upsample2
-from kpcn.ops.fused import MAX_NATIVE_SCALE, feed_native, softmax_apply_native, upsample_guide_native
+from kpcn.ops.fused import (MAX_NATIVE_SCALE, feed_native, residual_regression_native, softmax_apply_native,
+                            upsample_guide_native)
+from kpcn.ops.regression import residual_regression
 
 HAVE_CC = native._compiler() is not None
 
@@ -142,6 +144,25 @@ def test_feed_is_the_transformed_guide_and_pooled_features(kind, dtype, layout):
         feed_native(x[..., 1:, :], kind, weight, bias, guide[..., 1:, :], pooled)
 
 
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("h,w", [(37, 51), (64, 64), (20, 9), (2, 3)])
+@pytest.mark.parametrize("clip,bound", [(None, True), (0.15, True), (0.15, False)])
+def test_residual_regression_is_the_pytorch_paths(monkeypatch, h, w, clip, bound):
+    """The detail stage's regression at stride 2 (pixel-major views, as the stage passes them; odd sizes; a
+    firefly): the native pass against the PyTorch path (``KPCN_NATIVE=0``) of the same function."""
+    g = torch.Generator().manual_seed(h * w)
+    d = torch.rand(1, 3, h, w, generator=g) * 2
+    n = d * torch.exp(torch.randn(1, 3, h, w, generator=g) * 0.5)
+    n[0, :, h // 2, w // 2] = 500.0
+    guide = torch.randn(1, 3, h, w, generator=g)
+    d, n, guide = (t[0].permute(1, 2, 0).contiguous().permute(2, 0, 1)[None] for t in (d, n, guide))
+    got = residual_regression_native(d, n, guide, 6, 1e-3, bound, clip)
+    monkeypatch.setenv("KPCN_NATIVE", "0")
+    want = residual_regression(d, n, guide, radius=6, eps=1e-3, stride=2, clip=clip, bound=bound)
+    assert got is not None and got.shape == want.shape
+    torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-6)
+
+
 def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     k = 3
     logits, padded = torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 8, 10)
@@ -152,6 +173,11 @@ def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     if HAVE_CC:
         with pytest.raises(ValueError, match="does not fit"):
             softmax_apply_native(torch.zeros(1, 9, 6, 8), torch.zeros(1, 3, 6, 10), k, 16.0)
+    img = torch.zeros(1, 3, 6, 8)
+    assert residual_regression_native(img.double(), img.double(), img.double(), 4, 0.01, True, None) is None
+    assert residual_regression_native(img.requires_grad_(), img, img, 4, 0.01, True, None) is None
+    assert residual_regression_native(torch.zeros(2, 3, 6, 8), torch.zeros(2, 3, 6, 8), torch.zeros(2, 3, 6, 8),
+                                      4, 0.01, True, None) is None
     low, guide, wg = torch.zeros(1, 4, 5, 8), torch.zeros(1, 2, 6, 16), torch.zeros(4, 2)
     assert upsample_guide_native(low.double(), guide, wg) is None
     assert upsample_guide_native(low.requires_grad_(), guide, wg) is None

@@ -4,7 +4,8 @@ Each returns None where the library or its inputs do not fit (no compiler, ``KPC
 float32 on the CPU, ...), and the caller runs its PyTorch path: the same function to float rounding.
 
 :func:`softmax_apply_native`: bounded-softmax kernels applied; :func:`upsample_guide_native`: the guided head's
-full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows.
+full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows;
+:func:`residual_regression_native`: the detail stage's regression with one fit per 2×2 block.
 
 ``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
 (``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
@@ -20,7 +21,7 @@ import torch
 
 from . import native
 
-__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
+__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "residual_regression_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
            "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
@@ -148,3 +149,26 @@ def feed_native(x: torch.Tensor, transform: str, guide_weight: torch.Tensor | No
                   int(g and guide.dtype == torch.bfloat16), pooled.data_ptr(), pooled.stride(1), pooled.stride(2),
                   pooled.stride(3), int(pooled.dtype == torch.bfloat16), threads)
     return True
+
+
+def residual_regression_native(denoised: torch.Tensor, noisy: torch.Tensor, guide: torch.Tensor, radius: int,
+                               eps: float, bound: bool, clip: float | None) -> torch.Tensor | None:
+    """:func:`kpcn.ops.regression.residual_regression` with ``stride=2`` for one image: ``denoised``, ``noisy``
+    ``(1, 3, H, W)`` and ``guide`` ``(1, 3, H, W)`` float32 at any strides (arguments as there, checked there);
+    ``(1, 3, H, W)`` contiguous, or None where the native path does not apply."""
+    ts = (denoised, noisy, guide)
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.dim() != 4 or tuple(t.shape[:2]) != (1, 3)
+           or (torch.is_grad_enabled() and t.requires_grad) for t in ts):
+        return None
+    lib = native.library()
+    if lib is None:
+        return None
+    h, w = denoised.shape[-2:]
+    hb, wb = (h + 1) // 2, (w + 1) // 2
+    out = torch.empty(1, 3, h, w, dtype=torch.float32)
+    scratch = torch.empty(9 * h * w + 66 * hb * wb, dtype=torch.float32)
+    d, n, g = (t[0] for t in ts)
+    lib.residual_regression_s2(d.data_ptr(), *d.stride(), n.data_ptr(), *n.stride(), g.data_ptr(), *g.stride(),
+                               out.data_ptr(), h, w, radius // 2, float(eps), float(clip) if clip is not None else 0.0,
+                               int(bool(bound)), scratch.data_ptr(), max(1, min(torch.get_num_threads(), hb)))
+    return out

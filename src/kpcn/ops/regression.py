@@ -31,6 +31,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .fused import residual_regression_native
+
 __all__ = ["box_mean", "regression_reach", "residual_regression", "residual_regression_rows"]
 
 
@@ -149,6 +151,10 @@ def residual_regression(denoised: torch.Tensor, noisy: torch.Tensor, guide: torc
     if stride not in (1, 2) or radius // stride < 1:
         raise ValueError(f"residual_regression: stride must be 1 or 2 and radius >= stride, got stride {stride!r} "
                          f"and radius {radius!r}")
+    if stride == 2 and guide.shape[1] == 3 and denoised.shape[:2] == (1, 3):  # one native pass where it applies
+        out = residual_regression_native(denoised, noisy, guide, radius, eps, bound, clip)
+        if out is not None:
+            return out
     base = torch.log1p(denoised.clamp_min(0))
     r = torch.log1p(noisy.clamp_min(0)) - base
     k, c = guide.shape[1], r.shape[1]

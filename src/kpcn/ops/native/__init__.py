@@ -28,10 +28,12 @@ from pathlib import Path
 
 import torch  # noqa: F401  (loaded first: its libgomp.so.1 is the one the library links)
 
-__all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "FLAGS"]
+__all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "HEADERS", "FLAGS"]
 
 #: the C sources compiled into the one library
-SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c")
+SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c")
+#: headers they include (part of the cache key)
+HEADERS = ("kpcn_math.h",)
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
 #: no flag that changes a result beyond it (no -ffast-math)
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp", "-fPIC", "-shared", "-std=c99")
@@ -83,7 +85,7 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     except (OSError, subprocess.SubprocessError) as exc:
         return None, f"{cc} --version failed: {exc}"
     key = hashlib.sha256()
-    for part in [version, " ".join(FLAGS), _cpu_identity()] + [p.read_text() for p in sources]:
+    for part in [version, " ".join(FLAGS), _cpu_identity()] + [(here / n).read_text() for n in SOURCES + HEADERS]:
         key.update(part.encode())
     folder = cache_dir()
     target = folder / f"kpcn_native_{key.hexdigest()[:20]}.so"
@@ -114,6 +116,9 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     lib.feed_rows.argtypes = [ptr, i64, i64, i32, i32, i32, i32, ptr, ptr, i32, ptr, i64, i64, i32, ptr, i64, i64, i64,
                               i32, i32]
     lib.feed_rows.restype = None
+    lib.residual_regression_s2.argtypes = [ptr, i64, i64, i64, ptr, i64, i64, i64, ptr, i64, i64, i64, ptr, i32, i32,
+                                           i32, f32, f32, i32, ptr, i32]
+    lib.residual_regression_s2.restype = None
     return lib, f"loaded {target}"
 
 

@@ -3,58 +3,23 @@
  *   guide[o, y, x]  = relu(b[o] + sum_c w[o, c] * T(x[c, y, x]))       (a 1x1 guide, full resolution)
  *   pooled[c, i, j] = T(pool2(x)[c, i, j])                             (half resolution)
  *
- * T is the input transform: the identity or sign(v) log1p(|v|) (UNetConfig.input_transform "none" / "log").
+ * T is the input transform: the identity or sign(v) log1p(|v|) (UNetConfig.input_transform "none" / "log"),
+ * log1p as kpcn_math.h computes it (within about 2 float32 steps of torch's).
  * pool2 sums as kpcn.models.layers.pool2 does: ((x[2i, 2j] + x[2i+1, 2j]) + (x[2i, 2j+1] + x[2i+1, 2j+1])) / 4.
  * Either output may be float32 or bfloat16 (rounded to nearest even, as torch rounds), at any strides (the pooled
  * features are kept channels-last). The PyTorch path makes several passes over all the channels of the band, at
  * both resolutions; here each pair of rows is read once. Pairs of rows split between `threads` OpenMP threads.
  */
-#include <stdint.h>
-#include <string.h>
+#include "kpcn_math.h"
 
 #define BLOCK 64
 #define MAX_CHANNELS 64
-
-/* log1p(u) for u >= 0, relative error about 1e-7: u <= sqrt(2) - 1 directly, else log(m 2^e) of v = 1 + u with
- * m in [sqrt(1/2), sqrt(2)); log1p(t) = t - t^2/2 + t^3 P(t) on [sqrt(1/2) - 1, sqrt(2) - 1] (P fitted for kpcn). */
-static inline float log1p_poly(float u) {
-    float v = 1.0f + u;
-    uint32_t bits;
-    memcpy(&bits, &v, sizeof bits);
-    int e = (int)((bits >> 23) & 0xff) - 127;
-    bits = (bits & 0x007fffffu) | 0x3f800000u;
-    float m;
-    memcpy(&m, &bits, sizeof m);
-    const int big = m > 1.41421356f;
-    m = big ? 0.5f * m : m;
-    e += big;
-    const int direct = u <= 0.41421356f;
-    const float t = direct ? u : m - 1.0f;
-    float p = -0.07660818845f;
-    p = p * t + 0.12786330283f;
-    p = p * t - 0.13161605597f;
-    p = p * t + 0.14197877049f;
-    p = p * t - 0.16622751951f;
-    p = p * t + 0.20001412928f;
-    p = p * t - 0.25000846386f;
-    p = p * t + 0.33333328366f;
-    const float lt = t - 0.5f * t * t + t * t * t * p;
-    const float ef = direct ? 0.0f : (float)e;
-    return ef * 0.693145751953125f + (ef * 1.428606765330187e-06f + lt);  /* ln 2 = hi + lo */
-}
 
 static inline float transform(float v, int kind) {
     if (!kind) return v;
     const float a = v < 0.0f ? -v : v;
     const float l = log1p_poly(a);
     return v < 0.0f ? -l : l;
-}
-
-static inline uint16_t float_to_bf16(float f) {
-    uint32_t b;
-    memcpy(&b, &f, sizeof b);
-    b += 0x7fffu + ((b >> 16) & 1u);
-    return (uint16_t)(b >> 16);
 }
 
 /* x: channel c of row y, column j at x[c * x_c + y * x_y + j] (rows, width even); gw: (g_channels, channels)

@@ -13,26 +13,9 @@
  * library links libgomp.so.1 by its soname, which in a process that has imported torch is torch's own runtime
  * (one thread pool: no second set of threads spinning beside torch's).
  */
-#include <stdint.h>
-#include <string.h>
+#include "kpcn_math.h"
 
 #define BLOCK 64
-
-static inline float exp2_poly(float v) {
-    v = v < -126.0f ? -126.0f : (v > 126.0f ? 126.0f : v);
-    float n = __builtin_floorf(v);
-    float f = v - n;  /* [0, 1) */
-    float p = 0.0018762329f;
-    p = p * f + 0.0089925844f;
-    p = p * f + 0.0558236055f;
-    p = p * f + 0.2401545346f;
-    p = p * f + 0.6931529641f;
-    p = p * f + 0.9999999404f;
-    int32_t bits = ((int32_t)n + 127) << 23;
-    float scale;
-    memcpy(&scale, &bits, sizeof scale);
-    return p * scale;
-}
 
 /* One row y of the output (see softmax_apply_rows). */
 static void softmax_apply_row(const float *z, int64_t z_c, int64_t z_y, int k, float s,

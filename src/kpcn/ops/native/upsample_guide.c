@@ -9,18 +9,10 @@
  * (guide_bf16), read as float32. The PyTorch path makes four interpolation passes over every channel, then a
  * matrix product; here each output row is made in the cache. Rows split between `threads` OpenMP threads.
  */
-#include <stdint.h>
-#include <string.h>
+#include "kpcn_math.h"
 #ifdef _OPENMP
 #include <omp.h>
 #endif
-
-static inline float bf16_to_float(uint16_t v) {
-    uint32_t bits = (uint32_t)v << 16;
-    float f;
-    memcpy(&f, &bits, sizeof f);
-    return f;
-}
 
 static void upsample_guide_row(const float *low, int64_t l_c, int64_t l_y, int low_w,
                                const void *guide, int64_t g_c, int64_t g_y, int g_channels, int guide_bf16,
