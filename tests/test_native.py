@@ -3,7 +3,6 @@ built here, the same function as the PyTorch path they replace, refused where th
 missing compiler costs nothing but the speed."""
 from __future__ import annotations
 
-import shutil
 import warnings
 
 import numpy as np
@@ -18,8 +17,9 @@ from kpcn.ops import native
 from kpcn.ops.kernel_apply import kernel_apply_padded
 from kpcn.models.kernel_heads import GuidedHead
 from kpcn.models.layers import conv1x1, pool2, transform_input, upsample2
-from kpcn.ops.fused import (MAX_NATIVE_SCALE, feed_native, residual_regression_native, softmax_apply_native,
-                            upsample_guide_native)
+from kpcn.features import branch_features, depth_scale_of, frame_to_tensors
+from kpcn.ops.fused import (MAX_NATIVE_SCALE, branch_features_native, feed_native, residual_regression_native,
+                            softmax_apply_native, upsample_guide_native)
 from kpcn.ops.regression import residual_regression
 
 HAVE_CC = native._compiler() is not None
@@ -115,8 +115,8 @@ def test_upsample_guide_is_the_guided_heads_band(guide_dtype, rows, width):
 
 @pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
 @pytest.mark.parametrize("kind", ["log", "none"])
-@pytest.mark.parametrize("dtype,layout", [(torch.float32, torch.contiguous_format), (torch.bfloat16, torch.channels_last),
-                                          (torch.float32, torch.channels_last)])
+@pytest.mark.parametrize("dtype,layout", [(torch.float32, torch.contiguous_format),
+                                          (torch.bfloat16, torch.channels_last), (torch.float32, torch.channels_last)])
 def test_feed_is_the_transformed_guide_and_pooled_features(kind, dtype, layout):
     """A band of feature rows (values from 1e-6 to 1e5, both signs; a slice, as the stream's bands are): the guide
     ``relu(W T(x) + b)`` and the pooled ``T(pool2(x))`` as :func:`transform_input`, :func:`pool2` and
@@ -161,6 +161,60 @@ def test_residual_regression_is_the_pytorch_paths(monkeypatch, h, w, clip, bound
     want = residual_regression(d, n, guide, radius=6, eps=1e-3, stride=2, clip=clip, bound=bound)
     assert got is not None and got.shape == want.shape
     torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-6)
+
+
+def _extreme_buffers(render, contiguous, one_channel):
+    """A real render's layers with NaN, ±Inf, huge and negative values planted, as views or copies."""
+    f = render("test:glossy", spp=4, seed=3, resolution=(37, 29))
+    b = frame_to_tensors(f, contiguous=contiguous)
+    b = {k: v.clone() if contiguous else v for k, v in b.items()}
+    for k in ("diffuse", "specular", "diffuseVariance", "normalVariance", "depth"):
+        if not contiguous:
+            b[k] = b[k].permute(0, 2, 3, 1).clone().permute(0, 3, 1, 2)  # a writable pixel-major copy
+    b["specular"][0, :, 3, 4] = 1e38
+    b["diffuse"][0, 1, 5, 5] = float("nan")
+    b["diffuse"][0, 2, 6, 7] = float("-inf")
+    b["diffuseVariance"][0, :, 2, 2] = float("inf")
+    b["diffuseVariance"][0, 0, 9, 9] = 1e20  # above its bound: clamped and counted
+    b["diffuseVariance"][0, 1, 9, 10] = -3.0
+    b["normalVariance"][0, :, 4, 4] = 7.0
+    b["depth"][0, :, 0, 0] = float("inf")
+    if one_channel:  # renderers that write one variance channel
+        for k in ("specularVariance", "albedoVariance", "depthVariance"):
+            b[k] = b[k][:, :1].clone()
+        b["specularVariance"][0, 0, 1, 1] = 1e30
+    return b
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("contiguous", [True, False])
+@pytest.mark.parametrize("one_channel", [False, True])
+@pytest.mark.parametrize("branches", [("diffuse", "specular"), ("specular",)])
+def test_branch_features_are_the_pytorch_paths(render, monkeypatch, contiguous, one_channel, branches):
+    """A real render with extreme values planted (layers as copies or as views of the frame's arrays, variances of
+    one channel or three, one branch or both): the native features, albedo and clamp warnings equal the PyTorch
+    path's (``KPCN_NATIVE=0``)."""
+    b = _extreme_buffers(render, contiguous, one_channel)
+    if branches == ("specular",):
+        del b["diffuse"], b["diffuseVariance"]  # an unlisted branch's layers need not be there
+    scale = depth_scale_of(torch.nan_to_num(b["depth"][:, :1], posinf=0.0).clamp_min(0.0))
+
+    def run():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = branch_features(b, scale, branches)
+        return out, [str(w.message) for w in caught]
+
+    assert branch_features_native(b, scale, branches) is not None
+    got, got_warn = run()
+    monkeypatch.setenv("KPCN_NATIVE", "0")
+    want, want_warn = run()
+    assert set(got) == set(want) == {"albedo", *branches}
+    for k in want:
+        assert torch.isfinite(got[k]).all(), k
+        torch.testing.assert_close(got[k], want[k], rtol=1e-5, atol=1e-6, msg=k)
+    assert got_warn == want_warn and len(want_warn) == 1  # the same values clamped, named in the same order
+    assert ("diffuseVariance: " in want_warn[0]) == ("diffuse" in branches) and "normalVariance: 3" in want_warn[0]
 
 
 def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
@@ -224,7 +278,8 @@ def test_a_real_frame_denoises_the_same_without_the_library(render, fresh_native
 
     for name in ("softmax_apply_native", "upsample_guide_native", "feed_native"):
         monkeypatch.setattr(unet_rows, name, counted(getattr(unet_rows, name)))
-    run = lambda: inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")  # noqa: E731
+    def run():
+        return inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")
     with_lib = run()
     assert with_lib.stats.row_bands > 0
     assert {name for name, _ in calls} == {"softmax_apply_native", "upsample_guide_native", "feed_native"}

@@ -34,6 +34,7 @@ import torch
 
 from .constants import EPS, N_FEATURES  # noqa: F401  (N_FEATURES re-exported)
 from .io import Frame
+from .ops.fused import branch_features_native
 
 #: layers the features read from a noisy render
 INPUT_LAYERS = (
@@ -232,6 +233,12 @@ def branch_features(
     unknown = [n for n in branches if n not in BRANCHES]
     if unknown:
         raise ValueError(f"branch_features: unknown branch {unknown[0]!r}; expected one of {BRANCHES}")
+    if variances and buffers["albedo"].shape[0] == 1:  # one native pass where it applies (the same to float rounding)
+        done = branch_features_native(buffers, depth_scale, branches)
+        if done is not None:
+            out, counts = done
+            _warn_clamped({k: torch.tensor(n) for k, n in counts.items()})
+            return out
     # from here on every buffer is finite (its own copy), and every variance finite and >= 0
     b = {k: finite_copy(buffers[k]) for k in need}
     if variances:  # bound every variance by what its layer's mean allows, before any division

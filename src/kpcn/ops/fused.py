@@ -5,7 +5,8 @@ float32 on the CPU, ...), and the caller runs its PyTorch path: the same functio
 
 :func:`softmax_apply_native`: bounded-softmax kernels applied; :func:`upsample_guide_native`: the guided head's
 full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows;
-:func:`residual_regression_native`: the detail stage's regression with one fit per 2×2 block.
+:func:`residual_regression_native`: the detail stage's regression with one fit per 2×2 block;
+:func:`branch_features_native`: the diffuse/specular features of a band.
 
 ``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
 (``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
@@ -17,12 +18,14 @@ Where the library or the inputs do not fit (no compiler, ``KPCN_NATIVE=0``, auto
 """
 from __future__ import annotations
 
+import ctypes
+
 import torch
 
 from . import native
 
-__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "residual_regression_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
-           "MAX_FEED_CHANNELS"]
+__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "residual_regression_native",
+           "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL", "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0
@@ -172,3 +175,53 @@ def residual_regression_native(denoised: torch.Tensor, noisy: torch.Tensor, guid
                                out.data_ptr(), h, w, radius // 2, float(eps), float(clip) if clip is not None else 0.0,
                                int(bool(bound)), scratch.data_ptr(), max(1, min(torch.get_num_threads(), hb)))
     return out
+
+
+#: the layers :func:`branch_features_native` reads, in the C function's order
+FEATURE_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth", "diffuseVariance", "specularVariance",
+                  "albedoVariance", "normalVariance", "depthVariance")
+
+
+def branch_features_native(buffers, depth_scale, branches) -> tuple[dict[str, torch.Tensor], dict[str, int]] | None:
+    """:func:`kpcn.features.branch_features` with variances for one image: ``buffers`` ``{layer: (1, C, h, w)}``
+    float32 on the CPU at any strides (C = 3, or 1 for a variance or the depth), ``depth_scale`` a number or a
+    one-element tensor (> 0), ``branches`` a subset of ``("diffuse", "specular")``.
+
+    Returns:
+        ``({"albedo": (1, 3, h, w), branch: (1, 27, h, w), ...}, {variance layer: values clamped})``, or None where
+        the native path does not apply (a missing layer is the caller's to report)."""
+    # an unlisted branch's layers are not read (the albedo stands in for them)
+    unused = {n for b, ls in (("diffuse", FEATURE_LAYERS[0::5]), ("specular", FEATURE_LAYERS[1::5]))
+              if b not in branches for n in ls}
+    if depth_scale is None or not branches or any(n not in buffers for n in FEATURE_LAYERS if n not in unused):
+        return None
+    ts = [buffers["albedo"] if n in unused else buffers[n] for n in FEATURE_LAYERS]
+    h, w = ts[0].shape[-2:]
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.dim() != 4 or t.shape[0] != 1
+           or t.shape[1] not in (1, 3) or tuple(t.shape[-2:]) != (h, w) or (torch.is_grad_enabled() and t.requires_grad)
+           for t in ts) or h < 1 or w < 1:
+        return None
+    scale = float(depth_scale.reshape(-1)[0]) if isinstance(depth_scale, torch.Tensor) else float(depth_scale)
+    if isinstance(depth_scale, torch.Tensor) and depth_scale.numel() != 1 or not scale > 0:
+        return None
+    lib = native.library()
+    if lib is None:
+        return None
+    ptrs = (ctypes.c_void_p * 10)(*(t.data_ptr() for t in ts))
+    strides = ((ctypes.c_int64 * 3) * 10)(*((ctypes.c_int64 * 3)(*t.stride()[1:]) for t in ts))
+    channels = (ctypes.c_int * 10)(*(t.shape[1] for t in ts))
+    out = {"albedo": torch.empty(1, 3, h, w)}
+    for b in branches:
+        out[b] = torch.empty(1, 27, h, w)
+    threads = max(1, min(torch.get_num_threads(), h))
+    tmp, rows = torch.empty(4 * h * w), torch.empty(threads * 31 * w)  # the normal and depth planes; row buffers
+    clamped = torch.zeros(5, dtype=torch.int64)
+    lib.branch_features_rows(ptrs, strides, channels, h, w, scale, int("diffuse" in out), int("specular" in out),
+                             out["diffuse"].data_ptr() if "diffuse" in out else None,
+                             out["specular"].data_ptr() if "specular" in out else None, out["albedo"].data_ptr(),
+                             tmp.data_ptr(), rows.data_ptr(), clamped.data_ptr(), threads)
+    n = dict(zip(("diffuseVariance", "specularVariance", "albedoVariance", "normalVariance", "depthVariance"),
+                 clamped.tolist()))
+    # in the order kpcn.features reads the layers (its warning names them so): the shared ones, then each branch's
+    order = ("albedoVariance", "normalVariance", "depthVariance") + tuple(f"{b}Variance" for b in branches)
+    return out, {k: n[k] for k in order}

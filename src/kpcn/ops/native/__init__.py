@@ -31,7 +31,7 @@ import torch  # noqa: F401  (loaded first: its libgomp.so.1 is the one the libra
 __all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "HEADERS", "FLAGS"]
 
 #: the C sources compiled into the one library
-SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c")
+SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c", "branch_features.c")
 #: headers they include (part of the cache key)
 HEADERS = ("kpcn_math.h",)
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
@@ -119,6 +119,8 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     lib.residual_regression_s2.argtypes = [ptr, i64, i64, i64, ptr, i64, i64, i64, ptr, i64, i64, i64, ptr, i32, i32,
                                            i32, f32, f32, i32, ptr, i32]
     lib.residual_regression_s2.restype = None
+    lib.branch_features_rows.argtypes = [ptr, ptr, ptr, i32, i32, f32, i32, i32, ptr, ptr, ptr, ptr, ptr, ptr, i32]
+    lib.branch_features_rows.restype = None
     return lib, f"loaded {target}"
 
 

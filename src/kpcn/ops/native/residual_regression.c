@@ -149,7 +149,8 @@ void residual_regression_s2(const float *dp, int64_t d_c, int64_t d_y, int64_t d
         #pragma omp for schedule(static)
         for (int y = 0; y < height; ++y) {  /* 0. planes of g, log1p(denoised) and r */
             for (int c = 0; c < 3; ++c) {
-                float *restrict bo = B + c * full + (int64_t)y * width, *restrict ro = R + c * full + (int64_t)y * width;
+                float *restrict bo = B + c * full + (int64_t)y * width;
+                float *restrict ro = R + c * full + (int64_t)y * width;
                 gather_row(gp + c * g_c + (int64_t)y * g_y, g_x, width, G + c * full + (int64_t)y * width);
                 gather_row(dp + c * d_c + (int64_t)y * d_y, d_x, width, bo);
                 gather_row(np_ + c * n_c + (int64_t)y * n_y, n_x, width, ro);
