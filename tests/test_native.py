@@ -54,6 +54,18 @@ def test_the_library_builds_and_loads_here(fresh_native):
     assert not list(fresh_native.glob("*.so")) == [] and not list(fresh_native.glob("tmp*"))  # no half-written file
 
 
+def test_a_cache_folder_that_cannot_be_made_costs_only_the_speed(fresh_native, monkeypatch, tmp_path):
+    """``KPCN_CACHE_DIR`` under a file (no folder can be made there): a warning that says where, and None."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("KPCN_CACHE_DIR", str(blocker / "cache"))
+    native.reset()
+    with pytest.warns(RuntimeWarning, match="native kernels unavailable"):
+        assert native.library() is None
+    assert native.status().startswith("unavailable: ") and ("a-file" in native.status() or not HAVE_CC)
+    assert softmax_apply_native(torch.zeros(1, 9, 4, 4), torch.zeros(1, 3, 6, 6), 3, 16.0) is None
+
+
 @pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
 @pytest.mark.parametrize("k,channels,batch,width,s", [(1, 3, 1, 70, 16.0), (3, 3, 1, 131, 16.0), (5, 3, 2, 64, 16.0),
                                                        (5, 9, 1, 200, 4.0), (7, 6, 1, 65, 80.0), (9, 3, 1, 33, 1.0)])
