@@ -3,6 +3,7 @@ built here, the same function as the PyTorch path they replace, refused where th
 missing compiler costs nothing but the speed."""
 from __future__ import annotations
 
+import shutil
 import warnings
 
 import numpy as np
@@ -52,6 +53,19 @@ def test_the_library_builds_and_loads_here(fresh_native):
     assert native.library() is not None  # found in the cache, not built again
     assert [p.stat().st_mtime_ns for p in fresh_native.glob("kpcn_native_*.so")] == [stamp]
     assert not list(fresh_native.glob("*.so")) == [] and not list(fresh_native.glob("tmp*"))  # no half-written file
+
+
+def test_a_failing_compiler_leaves_nothing_behind(fresh_native, monkeypatch):
+    """``$CC`` that fails (``false``): a warning naming it, None, and no half-written file in the cache folder."""
+    false = shutil.which("false")
+    if false is None:
+        pytest.skip("no `false` command here")
+    monkeypatch.setenv("CC", false)
+    native.reset()
+    with pytest.warns(RuntimeWarning, match="native kernels unavailable"):
+        assert native.library() is None
+    assert "failed (1)" in native.status()
+    assert fresh_native.is_dir() and not list(fresh_native.iterdir())
 
 
 def test_a_cache_folder_that_cannot_be_made_costs_only_the_speed(fresh_native, monkeypatch, tmp_path):

@@ -90,6 +90,7 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     folder = cache_dir()
     target = folder / f"kpcn_native_{key.hexdigest()[:20]}.so"
     if not target.exists():
+        tmp = None
         try:
             folder.mkdir(parents=True, exist_ok=True)
             # compiled to a temporary name and renamed: a reader never finds a half-written library
@@ -98,11 +99,13 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
             proc = subprocess.run([cc, *FLAGS, "-o", tmp, *map(str, sources)], capture_output=True, text=True,
                                   timeout=300)
             if proc.returncode != 0:
-                os.unlink(tmp)
                 return None, f"{cc} failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}"
             os.replace(tmp, target)
         except (OSError, subprocess.SubprocessError) as exc:
             return None, f"building {target} failed: {exc}"
+        finally:  # a failed or stopped build leaves nothing behind
+            if tmp is not None and os.path.exists(tmp):
+                os.unlink(tmp)
     try:
         lib = ctypes.CDLL(str(target))
     except OSError as exc:
