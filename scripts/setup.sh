@@ -44,3 +44,6 @@ fi
 # the `blender` extra (bpy 5.0.1, ~375 MB download) lets the Cycles tests run; bpy pins numpy < 2
 .venv/bin/python -m pip install -q -e ".[dev,blender]"
 echo "[setup] ok: $(.venv/bin/python -c 'import torch, mitsuba, bpy; print("torch", torch.__version__, "mitsuba", mitsuba.__version__, "bpy", bpy.app.version_string)')"
+# the native kernels (kpcn/ops/native), compiled for this CPU now rather than on the first denoise; without a C
+# compiler the PyTorch paths run instead, and this line says so
+echo "[setup] native kernels: $(.venv/bin/python -W ignore -c 'from kpcn.ops import native; print(native.status())')"
