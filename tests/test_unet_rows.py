@@ -278,6 +278,21 @@ def test_light_groups_add_up_where_the_blend_dips_below_zero(mi):
         assert _rel(res.color, total) < 1e-5, rows
 
 
+def test_the_kernels_in_use_choose_the_smallest_banded_frame(frame, monkeypatch):
+    """Without a fixed threshold, bands start at 128² with the native kernels (their bands beat the whole frame from
+    there) and at 600² on the PyTorch paths; this 150 × 117 frame goes in bands only with the native kernels."""
+    from kpcn.inference import rows
+    from kpcn.ops import native
+
+    monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", None)
+    have = native.library() is not None
+    assert rows.rows_min_pixels() == (rows.ROWS_MIN_PIXELS_NATIVE if have else rows.ROWS_MIN_PIXELS_PYTORCH)
+    assert (inference.denoise_result(frame, _model(), device="cpu").stats.row_bands > 0) == have
+    monkeypatch.setenv("KPCN_NATIVE", "0")
+    assert rows.rows_min_pixels() == rows.ROWS_MIN_PIXELS_PYTORCH == 600 * 600
+    assert inference.denoise_result(frame, _model(), device="cpu").stats.row_bands == 0
+
+
 def test_small_frames_go_whole(frame, monkeypatch):
     """Below ``ROWS_MIN_PIXELS`` the bands' overhead outweighs what they save: the frame goes whole."""
     from kpcn.inference import rows

@@ -367,7 +367,8 @@ def denoise(
             the beauty's kernels (kernel predictors only); written to ``out_path`` too.
         aov_branch: the branch whose kernels filter layers that are not light groups
             (default: the spec's first branch).
-        rows: on the CPU, a frame of at least 600x600 pixels denoised whole by a model with row streams
+        rows: on the CPU, a frame of at least 128x128 pixels (600x600 without the native kernels;
+            :func:`kpcn.inference.rows.rows_min_pixels`) denoised whole by a model with row streams
             (the ``stem: half`` U-Net, the default) is run a band of rows at a time (:mod:`kpcn.inference.rows`: the same result to
             float rounding, in less time and memory); ``False``: the whole frame at once.
         precision: the dtype of the model's hidden layers: ``"float32"``, ``"bfloat16"``, or ``"auto"``

@@ -2,7 +2,7 @@
 
 For models that offer them (:meth:`~kpcn.models.DenoiserModel.row_stream`: the ``stem: half`` U-Net),
 :func:`kpcn.inference.denoise_result` runs a frame it would denoise whole on the CPU, of at least
-:data:`ROWS_MIN_PIXELS`, this way instead (light groups and other ``layers=`` too): the
+:func:`rows_min_pixels`, this way instead (light groups and other ``layers=`` too): the
 features are built a band of rows at a time (with the whole frame's depth scale or noise precision,
 and the one row below that the forward differences read), fed to each branch's stream, the networks
 run once at half resolution, and the output is assembled band by band (each band's branches
@@ -19,22 +19,38 @@ from ..features import frame_to_tensors
 from ..io import Frame
 from ..models import unet_rows
 from ..models.unet_rows import clamped_rows
+from ..ops import native
 from .aovs import aov_signals, compose_aovs
 
-__all__ = ["denoise_rows", "supports_rows", "ROWS_MIN_PIXELS"]
+__all__ = ["denoise_rows", "supports_rows", "rows_min_pixels", "ROWS_MIN_PIXELS", "ROWS_MIN_PIXELS_PYTORCH",
+           "ROWS_MIN_PIXELS_NATIVE"]
 
-#: frames smaller than this go whole at once: below about 0.3 MP the bands' per-call overhead outweighs what
-#: they save (the default U-Net on 2 threads: 256² 0.084 s in bands against 0.073 s whole, 512² 0.29 against
-#: 0.24; 640² 0.65 against 0.80, 1024² 1.25–1.45 against 1.6–1.7)
-ROWS_MIN_PIXELS = 600 * 600
+#: frames smaller than this go whole at once on the PyTorch paths: below about 0.3 MP the bands' per-call overhead
+#: outweighs what they save (the default U-Net on 2 threads: 256² 0.084 s in bands against 0.073 s whole, 512² 0.29
+#: against 0.24; 640² 0.65 against 0.80, 1024² 1.25–1.45 against 1.6–1.7)
+ROWS_MIN_PIXELS_PYTORCH = 600 * 600
+#: ... and with the native kernels (kpcn.ops.native), whose bands cost less than the whole frame's passes at every
+#: size measured (thirty-seventh session, 2 threads, bands against whole: 128² 10.3 against 11.2 ms, 256² 44 against
+#: 51, 512² 136 against 159)
+ROWS_MIN_PIXELS_NATIVE = 128 * 128
+#: a fixed threshold (pixels) instead of the one the kernels in use choose (:func:`rows_min_pixels`); None: theirs
+ROWS_MIN_PIXELS: int | None = None
+
+
+def rows_min_pixels() -> int:
+    """The smallest frame (pixels) taken in row bands: :data:`ROWS_MIN_PIXELS` where set, else
+    :data:`ROWS_MIN_PIXELS_NATIVE` with the native kernels and :data:`ROWS_MIN_PIXELS_PYTORCH` without."""
+    if ROWS_MIN_PIXELS is not None:
+        return ROWS_MIN_PIXELS
+    return ROWS_MIN_PIXELS_NATIVE if native.library() is not None else ROWS_MIN_PIXELS_PYTORCH
 
 
 def supports_rows(net, height: int | None = None, width: int | None = None) -> bool:
     """Whether ``net`` has row streams for every branch (and, given a size, whether the frame is large enough
-    for bands to pay: :data:`ROWS_MIN_PIXELS`)."""
+    for bands to pay: :func:`rows_min_pixels`)."""
     if not getattr(net, "streams_rows", False):
         return False
-    return height is None or width is None or height * width >= ROWS_MIN_PIXELS
+    return height is None or width is None or height * width >= rows_min_pixels()
 
 
 def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(), band: int | None = None
