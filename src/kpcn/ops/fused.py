@@ -37,12 +37,16 @@ _FEED_TRANSFORMS = {"none": 0, "log": 1}
 MAX_NATIVE_KERNEL = 31
 
 
+def _plain(*ts: torch.Tensor, dtypes=(torch.float32,), rows: bool = False) -> bool:
+    """Whether every tensor can go to the C library as it is: 4-D on the CPU in one of ``dtypes``, asking for no
+    gradient, and with ``rows`` each row contiguous. The one check every wrapper here makes first."""
+    return all(t.dim() == 4 and t.device.type == "cpu" and t.dtype in dtypes
+               and not (torch.is_grad_enabled() and t.requires_grad) and (not rows or t.stride(-1) == 1) for t in ts)
+
+
 def _usable(logits: torch.Tensor, padded: torch.Tensor, k: int, s: float) -> bool:
-    return (logits.dtype == torch.float32 and padded.dtype == torch.float32 and logits.device.type == "cpu"
-            and padded.device.type == "cpu" and logits.dim() == 4 and padded.dim() == 4
-            and not (torch.is_grad_enabled() and (logits.requires_grad or padded.requires_grad))
-            and logits.stride(-1) == 1 and padded.stride(-1) == 1 and 0 < s <= MAX_NATIVE_SCALE
-            and k % 2 == 1 and k <= MAX_NATIVE_KERNEL and logits.shape[1] == k * k)
+    return (_plain(logits, padded, rows=True) and 0 < s <= MAX_NATIVE_SCALE and k % 2 == 1 and k <= MAX_NATIVE_KERNEL
+            and logits.shape[1] == k * k)
 
 
 def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size: int,
@@ -84,10 +88,8 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     Returns:
         ``(1, O, 2n, 2w)`` float32 contiguous, or None where the native path does not apply.
     """
-    if (torch.is_grad_enabled() and (low.requires_grad or guide.requires_grad or weight.requires_grad)) or \
-            low.dtype != torch.float32 or guide.dtype not in (torch.float32, torch.bfloat16) or \
-            low.device.type != "cpu" or guide.device.type != "cpu" or low.dim() != 4 or guide.dim() != 4 or \
-            low.shape[0] != 1 or guide.shape[0] != 1 or low.stride(-1) != 1 or guide.stride(-1) != 1:
+    if not (_plain(low, rows=True) and _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)) or \
+            (torch.is_grad_enabled() and weight.requires_grad) or low.shape[0] != 1 or guide.shape[0] != 1:
         return None
     _, o, lr, lw = low.shape
     g = guide.shape[1]
@@ -124,13 +126,9 @@ def feed_native(x: torch.Tensor, transform: str, guide_weight: torch.Tensor | No
     Returns:
         True when written; False where the native path does not apply (nothing written).
     """
-    if transform not in _FEED_TRANSFORMS or x.dtype != torch.float32 or x.device.type != "cpu" or x.dim() != 4 or \
-            x.shape[0] != 1 or x.shape[1] > MAX_FEED_CHANNELS or x.stride(-1) != 1 or \
-            (torch.is_grad_enabled() and x.requires_grad):
-        return False
-    outs = [pooled] + ([guide] if guide is not None else [])
-    if any(t.dtype not in (torch.float32, torch.bfloat16) or t.device.type != "cpu" for t in outs) or \
-            (guide is not None and guide.stride(-1) != 1):
+    if transform not in _FEED_TRANSFORMS or not _plain(x, rows=True) or x.shape[0] != 1 or \
+            x.shape[1] > MAX_FEED_CHANNELS or not _plain(pooled, dtypes=(torch.float32, torch.bfloat16)) or \
+            (guide is not None and not _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)):
         return False
     _, c, n, w = x.shape
     g = 0 if guide is None else guide.shape[1]
@@ -160,8 +158,7 @@ def residual_regression_native(denoised: torch.Tensor, noisy: torch.Tensor, guid
     ``(1, 3, H, W)`` and ``guide`` ``(1, 3, H, W)`` float32 at any strides (arguments as there, checked there);
     ``(1, 3, H, W)`` contiguous, or None where the native path does not apply."""
     ts = (denoised, noisy, guide)
-    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.dim() != 4 or tuple(t.shape[:2]) != (1, 3)
-           or (torch.is_grad_enabled() and t.requires_grad) for t in ts):
+    if not _plain(*ts) or any(tuple(t.shape[:2]) != (1, 3) for t in ts):
         return None
     lib = native.library()
     if lib is None:
@@ -197,9 +194,8 @@ def branch_features_native(buffers, depth_scale, branches) -> tuple[dict[str, to
         return None
     ts = [buffers["albedo"] if n in unused else buffers[n] for n in FEATURE_LAYERS]
     h, w = ts[0].shape[-2:]
-    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.dim() != 4 or t.shape[0] != 1
-           or t.shape[1] not in (1, 3) or tuple(t.shape[-2:]) != (h, w) or (torch.is_grad_enabled() and t.requires_grad)
-           for t in ts) or h < 1 or w < 1:
+    if not _plain(*ts) or h < 1 or w < 1 or \
+            any(t.shape[0] != 1 or t.shape[1] not in (1, 3) or tuple(t.shape[-2:]) != (h, w) for t in ts):
         return None
     scale = float(depth_scale.reshape(-1)[0]) if isinstance(depth_scale, torch.Tensor) else float(depth_scale)
     if isinstance(depth_scale, torch.Tensor) and depth_scale.numel() != 1 or not scale > 0:
