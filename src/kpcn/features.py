@@ -237,7 +237,7 @@ def branch_features(
         done = branch_features_native(buffers, depth_scale, branches)
         if done is not None:
             out, counts = done
-            _warn_clamped({k: torch.tensor(n) for k, n in counts.items()})
+            _warn_clamped(counts)
             return out
     # from here on every buffer is finite (its own copy), and every variance finite and >= 0
     b = {k: finite_copy(buffers[k]) for k in need}

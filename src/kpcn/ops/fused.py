@@ -1,20 +1,13 @@
 """Inference steps of the U-Net's row bands fused into one native pass each (:mod:`kpcn.ops.native`).
 
-Each returns None where the library or its inputs do not fit (no compiler, ``KPCN_NATIVE=0``, autograd, not
-float32 on the CPU, ...), and the caller runs its PyTorch path: the same function to float rounding.
+Each returns None (:func:`feed_native`: False) where the library or its inputs do not fit (no compiler,
+``KPCN_NATIVE=0``, autograd, not float32 on the CPU, ...), and the caller runs its PyTorch path: the same function
+to float rounding. Each splits its rows between ``torch.get_num_threads()`` threads (torch's own OpenMP pool).
 
 :func:`softmax_apply_native`: bounded-softmax kernels applied; :func:`upsample_guide_native`: the guided head's
 full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows;
 :func:`residual_regression_native`: the detail stage's regression with one fit per 2×2 block;
 :func:`branch_features_native`: the diffuse/specular features of a band.
-
-``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t`` with ``w_t = exp(s tanh(z_t / s))``
-(``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): the U-Net's kernels
-(:func:`kpcn.models.kernel_heads._softmax_weights`, then :func:`~kpcn.ops.kernel_apply.kernel_apply_padded`) in
-one loop of the C library :mod:`kpcn.ops.native`, the rows split between ``torch.get_num_threads()`` threads
-(torch's own OpenMP pool).
-Where the library or the inputs do not fit (no compiler, ``KPCN_NATIVE=0``, autograd, not float32 on the CPU,
-``s > 80``) it returns None and the caller runs its PyTorch path.
 """
 from __future__ import annotations
 
@@ -44,6 +37,11 @@ def _plain(*ts: torch.Tensor, dtypes=(torch.float32,), rows: bool = False) -> bo
                and not (torch.is_grad_enabled() and t.requires_grad) and (not rows or t.stride(-1) == 1) for t in ts)
 
 
+def _threads(rows: int) -> int:
+    """Threads for a call over ``rows`` rows (or row pairs, blocks of rows): torch's, no more than there are rows."""
+    return max(1, min(torch.get_num_threads(), rows))
+
+
 def _usable(logits: torch.Tensor, padded: torch.Tensor, k: int, s: float) -> bool:
     return (_plain(logits, padded, rows=True) and 0 < s <= MAX_NATIVE_SCALE and k % 2 == 1 and k <= MAX_NATIVE_KERNEL
             and logits.shape[1] == k * k)
@@ -53,6 +51,11 @@ def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size
                          logit_scale: float) -> torch.Tensor | None:
     """The bounded-softmax kernels of ``logits`` ``(B, k², H, W)`` applied to ``padded`` ``(B, C, H + 2r, W + 2r)``
     (``r = k // 2``, already padded): ``(B, C, H, W)`` float32, or None where the native path does not apply.
+
+    ``out[b, c, y, x] = sum_t w_t · padded[b, c, y + i_t, x + j_t] / sum_t w_t``, ``w_t = exp(s tanh(z_t / s))``
+    (``z = logits[b, :, y, x]``, tap ``t = i k + j`` in :func:`~kpcn.ops.kernel_apply` order): what
+    :func:`kpcn.models.kernel_heads._softmax_weights` and :func:`~kpcn.ops.kernel_apply.kernel_apply_padded` do, in
+    one loop; ``s`` at most :data:`MAX_NATIVE_SCALE`.
 
     ``logits`` may be a slice of a larger tensor (its rows and taps strided), each row contiguous."""
     k, s = int(kernel_size), float(logit_scale)
@@ -67,7 +70,7 @@ def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size
         return None
     c = padded.shape[1]
     out = torch.empty(b, c, h, w, dtype=torch.float32)
-    threads = max(1, min(torch.get_num_threads(), h))
+    threads = _threads(h)
     for i in range(b):
         z, img, o = logits[i], padded[i], out[i]
         lib.softmax_apply_rows(z.data_ptr(), z.stride(0), z.stride(1), k, s, img.data_ptr(), img.stride(0),
@@ -102,7 +105,7 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     rows = 2 * lr - 4
     out = torch.empty(1, o, rows, 2 * lw, dtype=torch.float32)
     wg = weight.detach().to(torch.float32).contiguous()
-    threads = max(1, min(torch.get_num_threads(), rows))
+    threads = _threads(rows)
     scratch = torch.empty(threads * (g + 1) * 2 * lw, dtype=torch.float32)
     lib.upsample_guide_rows(low.data_ptr(), low.stride(1), low.stride(2), lr, lw, guide.data_ptr(), guide.stride(1),
                             guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), o, out.data_ptr(),
@@ -143,7 +146,7 @@ def feed_native(x: torch.Tensor, transform: str, guide_weight: torch.Tensor | No
         return False
     gw = guide_weight.detach().reshape(g, c).to(torch.float32).contiguous() if g else torch.zeros(1)
     gb = guide_bias.detach().to(torch.float32).contiguous() if g and guide_bias is not None else torch.zeros(max(g, 1))
-    threads = max(1, min(torch.get_num_threads(), n // 2))
+    threads = _threads(n // 2)
     gp = guide.data_ptr() if g else None
     lib.feed_rows(x.data_ptr(), x.stride(1), x.stride(2), c, n, w, _FEED_TRANSFORMS[transform], gw.data_ptr(),
                   gb.data_ptr(), g, gp, guide.stride(1) if g else 0, guide.stride(2) if g else 0,
@@ -170,7 +173,7 @@ def residual_regression_native(denoised: torch.Tensor, noisy: torch.Tensor, guid
     d, n, g = (t[0] for t in ts)
     lib.residual_regression_s2(d.data_ptr(), *d.stride(), n.data_ptr(), *n.stride(), g.data_ptr(), *g.stride(),
                                out.data_ptr(), h, w, radius // 2, float(eps), float(clip) if clip is not None else 0.0,
-                               int(bool(bound)), scratch.data_ptr(), max(1, min(torch.get_num_threads(), hb)))
+                               int(bool(bound)), scratch.data_ptr(), _threads(hb))
     return out
 
 
@@ -179,14 +182,15 @@ FEATURE_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth", "diffuseVa
                   "albedoVariance", "normalVariance", "depthVariance")
 
 
-def branch_features_native(buffers, depth_scale, branches) -> tuple[dict[str, torch.Tensor], dict[str, int]] | None:
+def branch_features_native(buffers, depth_scale, branches
+                           ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]] | None:
     """:func:`kpcn.features.branch_features` with variances for one image: ``buffers`` ``{layer: (1, C, h, w)}``
     float32 on the CPU at any strides (C = 3, or 1 for a variance or the depth), ``depth_scale`` a number or a
     one-element tensor (> 0), ``branches`` a subset of ``("diffuse", "specular")``.
 
     Returns:
-        ``({"albedo": (1, 3, h, w), branch: (1, 27, h, w), ...}, {variance layer: values clamped})``, or None where
-        the native path does not apply (a missing layer is the caller's to report)."""
+        ``({"albedo": (1, 3, h, w), branch: (1, 27, h, w), ...}, {variance layer: values clamped (0-dim)})``, or
+        None where the native path does not apply (a missing layer is the caller's to report)."""
     # an unlisted branch's layers are not read (the albedo stands in for them)
     unused = {n for b, ls in (("diffuse", FEATURE_LAYERS[0::5]), ("specular", FEATURE_LAYERS[1::5]))
               if b not in branches for n in ls}
@@ -209,7 +213,7 @@ def branch_features_native(buffers, depth_scale, branches) -> tuple[dict[str, to
     out = {"albedo": torch.empty(1, 3, h, w)}
     for b in branches:
         out[b] = torch.empty(1, 27, h, w)
-    threads = max(1, min(torch.get_num_threads(), h))
+    threads = _threads(h)
     tmp, rows = torch.empty(4 * h * w), torch.empty(threads * 31 * w)  # the normal and depth planes; row buffers
     clamped = torch.zeros(5, dtype=torch.int64)
     lib.branch_features_rows(ptrs, strides, channels, h, w, scale, int("diffuse" in out), int("specular" in out),
@@ -217,7 +221,7 @@ def branch_features_native(buffers, depth_scale, branches) -> tuple[dict[str, to
                              out["specular"].data_ptr() if "specular" in out else None, out["albedo"].data_ptr(),
                              tmp.data_ptr(), rows.data_ptr(), clamped.data_ptr(), threads)
     n = dict(zip(("diffuseVariance", "specularVariance", "albedoVariance", "normalVariance", "depthVariance"),
-                 clamped.tolist()))
+                 clamped.unbind()))
     # in the order kpcn.features reads the layers (its warning names them so): the shared ones, then each branch's
     order = ("albedoVariance", "normalVariance", "depthVariance") + tuple(f"{b}Variance" for b in branches)
     return out, {k: n[k] for k in order}
