@@ -80,7 +80,8 @@ def test_a_tag_sets_config_over_its_file():
     # the default has the stage too, with the smaller ridge that wide64e (wide64f's file) set over its file
     f, e = weights_entry("unet_kpcn", "wide64f"), weights_entry("unet_kpcn", "wide64e")
     assert default.tag == "wide64n" and e.path == f.path and dict(f.config) == dict(r.config)
-    assert dict(default.config) == dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
+    assert dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
+    assert dict(default.config) == {**dict(e.config), "exposure_range": (0.03, 1.0)}  # and its exposure range
     assert load_model("unet_kpcn", "cpu").detail_regression == (6, 0.001, 0.15)
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
     assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None

@@ -18,6 +18,9 @@ How a frame is processed
   ``stem: half`` U-Net) goes through :mod:`.rows` instead: features built a band
   of rows at a time, the network once at half resolution, the output assembled
   band by band (same result to float rounding; ``rows=False`` turns it off).
+* **Exposure**: a model that declares ``exposure_range`` (the default U-Net) denoises a frame whose exposure key
+  lies outside it at the nearer bound's exposure — its radiance layers scaled, the result scaled back
+  (:mod:`kpcn.exposure`); a frame inside is denoised as it is.
 * **What a frame does not need is left out** (``skip=True``, the default):
 
   - a branch with no positive radiance anywhere in the frame is not run and
@@ -41,6 +44,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
+from ..exposure import exposure_scale, frame_key, scale_layers
 from ..features import frame_to_tensors
 from ..io import Frame, read_exr, sanitize_layers, write_exr
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
@@ -195,6 +199,12 @@ def denoise_result(
     if plans and not net.zero_preserving:
         raise ValueError(f"denoise: layers=... needs a kernel-predicting model; {describe(net)} predicts no kernels")
     aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
+    # a frame far brighter or darker than the model's training frames is denoised at the nearer bound's exposure
+    key = frame_key(_noisy_color(frame)) if net.exposure_range is not None else None
+    scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
+    if scale != 1.0:
+        frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
+                      frame.meta, frame.path, frame.nonfinite)
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
     use_half = bool(half) and dev.type == "cuda"
@@ -207,7 +217,8 @@ def denoise_result(
     stats = DenoiseStats(size=(h, w), tile=tile_size(tile, align) or max(h, w), halo=halo, alignment=align,
                          device=str(dev), read_seconds=read_s, nonfinite=dict(frame.nonfinite),
                          branch_tiles_run={b: 0 for b in spec.branches},
-                         branch_tiles_skipped={b: 0 for b in spec.branches})
+                         branch_tiles_skipped={b: 0 for b in spec.branches},
+                         exposure_key=key, exposure_scale=scale)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
@@ -286,6 +297,10 @@ def denoise_result(
             out, refined = refine_detail(out, color_in, frame["normal"], *detail, layers=groups)
             aov_out.update(refined)
             stats.detail_radius, stats.detail_seconds = detail[0], time.perf_counter() - td
+    if scale != 1.0:  # back to the frame's own exposure
+        out *= np.float32(1.0 / scale)
+        for v in aov_out.values():
+            v *= np.float32(1.0 / scale)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         stats.peak_cuda_mb = torch.cuda.max_memory_allocated(dev) / 2**20

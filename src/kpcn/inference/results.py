@@ -36,6 +36,8 @@ class DenoiseStats:
             this many bands; 0: it was not.
         detail_radius: the radius of the normal-guided detail stage run after the network
             (:mod:`kpcn.inference.detail`); 0: none was run. detail_seconds: its wall time (part of ``seconds``).
+        exposure_key: the frame's exposure key (:func:`kpcn.exposure.frame_key`) for a model with an
+            ``exposure_range``; None otherwise. exposure_scale: the factor its radiance was denoised at (1.0: its own).
         views: how many mirrored copies of the frame were denoised and averaged (:mod:`kpcn.inference.ensemble`);
             the other fields are the first view's, ``seconds`` and ``detail_seconds`` the sums over all.
     """
@@ -65,6 +67,8 @@ class DenoiseStats:
     row_bands: int = 0
     detail_radius: int = 0
     detail_seconds: float = 0.0
+    exposure_key: float | None = None
+    exposure_scale: float = 1.0
     views: int = 1
 
     def summary(self) -> str:
@@ -87,6 +91,8 @@ class DenoiseStats:
             parts.append(f"noise precision {self.noise_precision:.2f}")
         if self.detail_radius:
             parts.append(f"detail stage {self.detail_seconds:.2f} s")
+        if self.exposure_scale != 1.0:
+            parts.append(f"exposure key {self.exposure_key:.3g} denoised x {self.exposure_scale:.3g}")
         if self.views > 1:
             parts.append(f"mean of {self.views} mirrored views")
         return ", ".join(parts)

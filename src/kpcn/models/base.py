@@ -31,6 +31,8 @@ model is only what it declares here:
   with the frame's normal (:func:`kpcn.ops.residual_regression`, an output pixel reads ``2 radius`` pixels further)
   after the network, outside ``forward``; a stage without weights, which training applies only with
   ``train.detail_stage`` (:func:`kpcn.train_steps.with_detail`).
+* ``exposure_range`` — ``(lo, hi)`` or None: the exposure keys of the frames the weights were trained on; the
+  inference pipeline brings a frame outside them to the nearer bound and its result back (:mod:`kpcn.exposure`).
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is
@@ -48,6 +50,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from ..exposure import check_exposure_range
 from ..inputs import InputSpec, get_input_spec
 
 __all__ = ["DenoiserModel", "check_inputs", "check_detail_config", "DETAIL_STAGE"]
@@ -83,6 +86,12 @@ class DenoiserModel(nn.Module):
         radius = int(getattr(self.config, "detail_radius", 0) or 0)
         clip = float(getattr(self.config, "detail_clip", 0.0) or 0.0) or None
         return (radius, float(self.config.detail_eps), clip) if radius > 0 else None
+
+    @property
+    def exposure_range(self) -> tuple[float, float] | None:
+        """``(lo, hi)``: the exposure keys (:func:`kpcn.exposure.frame_key`) the weights were trained on (config
+        field ``exposure_range``), or None: every frame is denoised at its own exposure."""
+        return check_exposure_range(getattr(self.config, "exposure_range", None))
 
     def __init__(self, config: Any) -> None:
         super().__init__()

@@ -66,6 +66,11 @@ from .registry import register_model, register_weights
 from .unet_branch import UNetBranch
 from .unet_config import UNetConfig
 
+#: the exposure keys (:func:`kpcn.exposure.frame_key`) of the default's last training frames, their 2nd and 98th
+#: percentiles rounded (data/f1 and data/f2: 1392 procedural frames at 2-256 spp, 0.032 and 0.997;
+#: ``python -m kpcn.exposure data/f1 data/f2``): a frame outside is denoised at the nearer bound's exposure
+TRAINED_KEYS = (0.03, 1.0)
+
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
 
 
@@ -218,7 +223,7 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
 register_weights("unet_kpcn", "wide64n", "unet_wide64n.safetensors", default=True,
-                 config=dict(DETAIL_STAGE, detail_eps=0.001),
+                 config=dict(DETAIL_STAGE, detail_eps=0.001, exposure_range=TRAINED_KEYS),
                  description="unet_kpcn:wide64e (the same network, 98 k multiply-adds per pixel, and its detail stage) "
                              "fine-tuned in two runs of 600 steps on the CPU on 89 fresh procedural 256x256 scenes "
                              "with the references as targets at every spp (no distillation from itself above 32 spp, "

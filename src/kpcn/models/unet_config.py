@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from ..exposure import check_exposure_range
 from ..inputs import get_input_spec
 from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
@@ -102,6 +103,10 @@ class UNetConfig:
         detail_eps: the regression's ridge on the normal's window covariance (> 0): larger keeps less.
         detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
             exceeds ``c`` (fireflies neither steer the fit nor come back through it).
+        exposure_range: None, or ``[lo, hi]``: the exposure keys (:func:`kpcn.exposure.frame_key`) of the frames
+            the weights were trained on; :func:`kpcn.inference.denoise` scales a frame whose key lies outside to the
+            nearer bound and its result back (:mod:`kpcn.exposure`). An inference setting with no weights, like the
+            detail stage.
     """
 
     input_spec: str = "kpcn_split"
@@ -130,9 +135,11 @@ class UNetConfig:
     detail_radius: int = 0
     detail_eps: float = 0.01
     detail_clip: float = 0.0
+    exposure_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
+        check_exposure_range(self.exposure_range, "UNetConfig.exposure_range")
         if not self.widths or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.widths):
             raise ValueError(f"UNetConfig.widths must be a non-empty list of positive integers, got {self.widths!r}")
         sw = self.specular_widths

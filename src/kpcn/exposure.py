@@ -1,0 +1,122 @@
+"""A frame's exposure key, and the scale that brings it into the range a model was trained on.
+
+A learned denoiser is not exposure-invariant: the same render in other radiance units (a scene lit 100× brighter
+with every surface 100× darker, a renderer in physical units, an exposure change before saving) gives another
+result, and far outside the brightness of the training frames a worse one (the default at 16 spp, 16 report
+scenes: PSNR 38.87 dB at their own exposure, 33.00 with every radiance layer × 0.01; docs/measured.md,
+thirty-eighth session). The key measures a frame's brightness robustly:
+
+* the luminance (Rec. 709 weights) of the noisy colour, negative values as 0;
+* averaged over blocks of :data:`BLOCK` × :data:`BLOCK` pixels (partial blocks at the right and bottom over the
+  pixels they have), so that a sparse low-spp frame — a few bright samples on black — has the key of its mean;
+* the geometric mean of the blocks' luminances above :data:`KEY_EPS` (black blocks, the sky of an empty
+  background, do not pull it to zero); 0 for a frame with no such block.
+
+It hardly depends on the sample count (procedural scenes: 2 spp and 256 spp within a few per cent). A model declares
+``exposure_range = (lo, hi)``, the keys of the frames it was trained on; a frame whose key lies outside is
+scaled by :func:`exposure_scale` to the nearer bound before denoising — every radiance layer × ``s``, its
+variance × ``s²`` (:func:`scale_layers`) — and the result divided by ``s`` (:func:`kpcn.inference.denoise`).
+Inside the range nothing is scaled: the result is what the model gives the frame as it is.
+
+``python -m kpcn.exposure ROOT...`` prints the keys of a data set's input frames (where a range comes from).
+"""
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["BLOCK", "KEY_EPS", "LUMINANCE", "frame_key", "exposure_scale", "scale_layers", "RADIANCE_LAYERS",
+           "check_exposure_range"]
+
+#: side of the blocks whose mean luminances the key averages (pixels)
+BLOCK = 16
+#: blocks at or below this luminance are left out of the key
+KEY_EPS = 1e-8
+#: Rec. 709 luminance weights of R, G, B
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+#: the layers that are radiance (scaled by ``s``; a ``<name>Variance`` layer beside one by ``s²``)
+RADIANCE_LAYERS = ("color", "diffuse", "specular")
+
+
+def frame_key(color: np.ndarray | torch.Tensor) -> float:
+    """The exposure key of a colour ``(H, W, 3)``: the geometric mean of its :data:`BLOCK`-pixel blocks' mean
+    luminances above :data:`KEY_EPS` (module docstring); 0.0 when no block is above it."""
+    c = torch.as_tensor(color)
+    if c.ndim != 3 or c.shape[-1] != 3:
+        raise ValueError(f"frame_key: expected a colour (H, W, 3), got shape {tuple(c.shape)}")
+    lum = (c.float().clamp_min(0) * c.new_tensor(LUMINANCE, dtype=torch.float32)).sum(-1)
+    # partial blocks are averaged over the pixels they have (ceil_mode leaves the missing ones out of the divisor)
+    blocks = F.avg_pool2d(lum[None, None].double(), BLOCK, ceil_mode=True).reshape(-1)
+    blocks = blocks[blocks > KEY_EPS]
+    return float(torch.exp(torch.log(blocks).mean())) if blocks.numel() else 0.0
+
+
+def check_exposure_range(key_range, who: str = "exposure_range") -> tuple[float, float] | None:
+    """``key_range`` as ``(lo, hi)`` floats with ``0 < lo <= hi`` (finite), or None; a clear error otherwise."""
+    if key_range is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in key_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"{who} must be None or two numbers (lo, hi), got {key_range!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise ValueError(f"{who} must satisfy 0 < lo <= hi (finite), got {key_range!r}")
+    return lo, hi
+
+
+def exposure_scale(key: float, key_range: Sequence[float] | None) -> float:
+    """The factor that brings a frame of exposure ``key`` into ``key_range`` ``(lo, hi)``: ``lo / key`` below it,
+    ``hi / key`` above it, 1.0 inside it, for no range, and for a black frame (``key`` 0)."""
+    rng = check_exposure_range(key_range)
+    if rng is None or not key > 0:
+        return 1.0
+    lo, hi = rng
+    return lo / key if key < lo else hi / key if key > hi else 1.0
+
+
+def scale_layers(layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    """A copy of ``layers`` with every radiance layer (:data:`RADIANCE_LAYERS` and ``extra``, e.g. light groups)
+    × ``s`` and its ``<name>Variance`` × ``s²``; other layers (albedo, normal, depth) are the same arrays."""
+    names = set(RADIANCE_LAYERS) | set(extra)
+    out = dict(layers)
+    for name, a in layers.items():
+        if name in names:
+            out[name] = (a * np.float32(s)).astype(np.float32, copy=False)
+        elif name.endswith("Variance") and name[: -len("Variance")] in names:
+            out[name] = (a * np.float32(s * s)).astype(np.float32, copy=False)
+    return out
+
+
+def _dataset_keys(roots: Sequence[str]) -> None:
+    """Print the keys of the input frames under ``roots`` (EXR files named ``input*.exr``): percentiles per spp."""
+    from pathlib import Path
+
+    from .io import read_exr
+
+    keys: dict[int, list[float]] = {}
+    for root in roots:
+        for path in sorted(Path(root).rglob("input*.exr")):
+            frame = read_exr(path, require=())
+            color = frame["color"] if "color" in frame else frame["diffuse"] + frame["specular"]
+            keys.setdefault(int(frame.meta.get("spp", 0) or 0), []).append(frame_key(color))
+    if not keys:
+        raise SystemExit(f"no input*.exr frames under {', '.join(roots)}")
+    pct = (0, 2, 10, 50, 90, 98, 100)
+    allk = np.concatenate([np.asarray(v) for v in keys.values()])
+    print(f"{allk.size} frames; key percentiles {pct}: {' '.join(f'{v:.4g}' for v in np.percentile(allk, pct))}")
+    for spp in sorted(keys):
+        v = np.percentile(keys[spp], pct)
+        print(f"  {spp:>5} spp ({len(keys[spp])} frames): {' '.join(f'{x:.4g}' for x in v)}")
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
+        print("usage: python -m kpcn.exposure ROOT [ROOT ...]  (the exposure keys of the input frames under ROOT)")
+        raise SystemExit(0 if len(sys.argv) >= 2 else 2)
+    _dataset_keys(sys.argv[1:])

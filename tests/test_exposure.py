@@ -1,0 +1,128 @@
+"""Exposure keys and the exposure range (kpcn.exposure), and the pipeline's use of them on real renders."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from kpcn.exposure import check_exposure_range, exposure_scale, frame_key, scale_layers
+from kpcn.inference import denoise, denoise_result, load_model
+from kpcn.io import Frame
+from kpcn.metrics import all_metrics
+
+RES = (48, 48)
+
+
+def _scaled(frame, s, extra=()):
+    return Frame(scale_layers(frame.layers, s, extra), dict(frame.meta))
+
+
+@pytest.fixture(scope="module")
+def models():
+    """The shipped default, and the same weights with no exposure range (every frame at its own exposure)."""
+    net = load_model("unet_kpcn", "cpu")
+    raw = copy.deepcopy(net)
+    raw.config.exposure_range = None
+    return net, raw
+
+
+# ---------------------------------------------------------------------------------------------- the key (maths)
+def test_the_key_is_the_geometric_mean_of_block_luminances():
+    rng = np.random.default_rng(0)
+    c = (rng.random((37, 50, 3)) ** 3).astype(np.float32)
+    c[:16, :16] = 0  # a black block: left out, not a zero in the mean
+    c[20, 30] = -5.0  # negative radiance counts as 0
+    lum = np.maximum(c, 0) @ np.array([0.2126, 0.7152, 0.0722])
+    blocks = [lum[y:y + 16, x:x + 16].mean() for y in range(0, 37, 16) for x in range(0, 50, 16)]
+    blocks = np.array([b for b in blocks if b > 1e-8])
+    assert len(blocks) == 11  # 3 x 4 blocks (the last row and column partial), one black
+    assert frame_key(c) == pytest.approx(float(np.exp(np.log(blocks).mean())), rel=1e-6)
+    assert frame_key(c * 1e-3) == pytest.approx(frame_key(c) * 1e-3, rel=1e-5)
+    assert frame_key(np.zeros((5, 7, 3), np.float32)) == 0.0
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        frame_key(np.zeros((5, 7), np.float32))
+
+
+def test_exposure_scale_brings_a_key_to_the_nearer_bound():
+    assert exposure_scale(0.5, (0.1, 1.0)) == 1.0
+    assert exposure_scale(0.01, (0.1, 1.0)) == pytest.approx(10.0)
+    assert exposure_scale(20.0, (0.1, 1.0)) == pytest.approx(0.05)
+    assert exposure_scale(0.0, (0.1, 1.0)) == 1.0  # a black frame is left as it is
+    assert exposure_scale(0.001, None) == 1.0
+    for bad in ((0.0, 1.0), (1.0, 0.5), (float("nan"), 1.0), (0.1,), "ab"):
+        with pytest.raises(ValueError, match="exposure_range"):
+            check_exposure_range(bad)
+
+
+def test_scale_layers_scales_radiance_and_its_variance_only():
+    a = {n: np.full((2, 2, 3), 2.0, np.float32) for n in ("color", "colorVariance", "albedo", "normal",
+                                                          "g.diffuse", "g.diffuseVariance", "other")}
+    out = scale_layers(a, 3.0, extra=["g.diffuse"])
+    assert out["color"][0, 0, 0] == 6.0 and out["colorVariance"][0, 0, 0] == 18.0
+    assert out["g.diffuse"][0, 0, 0] == 6.0 and out["g.diffuseVariance"][0, 0, 0] == 18.0
+    for n in ("albedo", "normal", "other"):
+        assert out[n] is a[n]
+    assert a["color"][0, 0, 0] == 2.0  # the input is not changed
+
+
+# ------------------------------------------------------------------------------------- on real renders
+def test_the_key_of_a_render_hardly_depends_on_its_sample_count(render):
+    keys = [frame_key(render("random:5", spp=spp, resolution=(64, 64))["color"]) for spp in (4, 64)]
+    assert keys[0] > 0 and abs(keys[0] / keys[1] - 1) < 0.25, keys
+
+
+def test_a_frame_inside_the_range_is_denoised_as_it_is(render, models):
+    net, raw = models
+    frame = render("test:glossy", spp=4, resolution=RES)
+    lo, hi = net.exposure_range
+    res = denoise_result(frame, net, device="cpu")
+    assert lo <= res.stats.exposure_key <= hi and res.stats.exposure_scale == 1.0
+    np.testing.assert_array_equal(res.color, denoise(frame, raw, device="cpu"))
+
+
+def test_frames_outside_the_range_are_denoised_at_its_bound(render, models):
+    net, _ = models
+    frame = render("test:glossy", spp=4, resolution=RES)
+    lo, hi = net.exposure_range
+    key = frame_key(frame["color"])
+    for bound, exposures in ((lo, (1e-3, 1e-6)), (hi, (1e3, 1e6))):
+        at_bound = denoise(_scaled(frame, bound / key), net, device="cpu") / (bound / key)
+        for e in exposures:
+            res = denoise_result(_scaled(frame, e), net, device="cpu")
+            assert res.stats.exposure_key * res.stats.exposure_scale == pytest.approx(bound, rel=1e-4)
+            assert "exposure key" in res.stats.summary()
+            np.testing.assert_allclose(res.color / e, at_bound, rtol=1e-4, atol=1e-4 * at_bound.max())
+
+
+def test_a_dark_or_bright_render_is_not_made_worse_than_its_input(render, models):
+    """Without the range the same weights return test:glossy at 1/1000 of its exposure further from the
+    reference than the noisy input (relMSE 0.43 against 0.17, 4 spp); with it, close to their result at the
+    frame's own exposure."""
+    net, raw = models
+    frame = render("test:glossy", spp=4, resolution=RES)
+    ref = render("test:glossy", spp=256, seed=2, role=1, resolution=RES)["color"]
+    noisy = all_metrics(frame["color"], ref)["relmse"]
+    own = all_metrics(denoise(frame, net, device="cpu"), ref)["relmse"]
+    for e in (1e-3, 1e3):
+        with_range = all_metrics(denoise(_scaled(frame, e), net, device="cpu") / e, ref)["relmse"]
+        without = all_metrics(denoise(_scaled(frame, e), raw, device="cpu") / e, ref)["relmse"]
+        assert with_range < without and with_range < 2 * own < noisy, (e, with_range, without, own, noisy)
+
+
+def test_light_groups_follow_the_beauty_at_another_exposure(models):
+    from kpcn.render.groups import render_light_groups
+
+    net, _ = models
+    frame = render_light_groups("test:textured", spp=8, seed=1, resolution=(48, 40))
+    names = frame.meta["lightGroups"].split(",")
+    parts = [f"{n}.{b}" for n in names for b in ("diffuse", "specular")]
+    out = {}
+    for e in (1e-4, 1e-6):
+        res = denoise_result(_scaled(frame, e, parts), net, device="cpu", layers=names)
+        assert res.stats.exposure_scale > 1
+        out[e] = {k: v / e for k, v in {"color": res.color, **res.layers}.items()}
+    for k, v in out[1e-4].items():  # the same frame at two exposures below the range: the same result
+        np.testing.assert_allclose(out[1e-6][k], v, rtol=1e-4, atol=1e-4 * v.max())
+    np.testing.assert_allclose(sum(out[1e-4][n] for n in names), out[1e-4]["color"], rtol=1e-4,
+                               atol=1e-4 * out[1e-4]["color"].max())
