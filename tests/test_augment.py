@@ -96,3 +96,59 @@ def test_undo_flips_returns_an_rgb_patch_to_where_it_was(t, fx, fy):
     aug = Augmentation(flip_x=bool(fx), flip_y=bool(fy), transpose=bool(t))
     y = augment_patch(x, aug)
     assert torch.equal(undo_flips(y, aug), x)
+
+
+# ------------------------------------------------------------------------------------------------ exposure
+def _split_batch(frame, ref, spec):
+    x = spec.build(frame_to_tensors(frame, spec.layers), None, spec.branches)
+    x.update(spec.targets(frame_to_tensors(ref, spec.target_layers), x))
+    x["noisy_color"] = frame_to_tensors(frame, ("color",))["color"]
+    return x
+
+
+@pytest.mark.parametrize("s", [0.01, 7.0])
+@pytest.mark.parametrize("spec_name", ["kpcn_split", "split_novar"])
+def test_a_batch_at_another_exposure_is_the_batch_of_the_rescaled_frame(render, s, spec_name):
+    """Features, targets and colours of a real render whose radiance layers are × s, against the same entries
+    rescaled by batch_at_exposure; exact but for the specular delta-method variance (an RGB mean, rescaled as if
+    each channel's variance were proportional to its radiance squared)."""
+    from kpcn.augment import batch_at_exposure
+    from kpcn.exposure import scale_layers
+    from kpcn.io import Frame
+
+    spec = get_input_spec(spec_name)
+    noisy, ref = render("test:glossy", spp=4, resolution=RES), render("test:glossy", spp=64, seed=2, role=1,
+                                                                        resolution=RES)
+    want = _split_batch(Frame(scale_layers(noisy.layers, s), noisy.meta), Frame(scale_layers(ref.layers, s)), spec)
+    got = batch_at_exposure(_split_batch(noisy, ref, spec), spec, torch.tensor([s]))
+    assert set(got) == set(want)
+    for k, w in want.items():
+        g = got[k]
+        if k == "specular" and 3 in spec.variance_channels:
+            var = w[:, 3]
+            assert (g[:, 3] - var).abs().max() <= 0.1 * var.max() and var.max() > 0
+            g, w = torch.cat([g[:, :3], g[:, 4:]], 1), torch.cat([w[:, :3], w[:, 4:]], 1)
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5 * float(w.abs().max()), msg=k)
+
+
+def test_exposure_batch_moves_chosen_patches_into_the_range(render):
+    from kpcn.augment import exposure_batch
+    from kpcn.exposure import frame_key
+
+    spec = get_input_spec("kpcn_split")
+    frames = [render(sc, spp=4, resolution=RES) for sc in ("test:glossy", "test:textured", "random:5")]
+    ref = render("test:glossy", spp=64, seed=2, role=1, resolution=RES)
+    parts = [_split_batch(f, ref, spec) for f in frames]
+    batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    batch["noisy_color"][0].mul_(1e-5)  # one patch far below the range
+    lo, hi = 0.2, 0.3  # narrower than the three patches' own keys
+    out = exposure_batch(batch, spec, torch.Generator().manual_seed(0), 1.0, (lo, hi))
+    keys = [frame_key(c.permute(1, 2, 0)) for c in out["noisy_color"]]
+    assert all(lo * 0.999 <= k <= hi * 1.001 for k in keys), keys
+    again = exposure_batch(batch, spec, torch.Generator().manual_seed(0), 1.0, (lo, hi))
+    torch.testing.assert_close(again["diffuse"], out["diffuse"])  # reproducible from the generator
+    kept = exposure_batch(batch, spec, torch.Generator().manual_seed(0), 0.0, (lo, hi))
+    assert all(kept[k] is batch[k] for k in batch)
+    with pytest.raises(ValueError, match="split input spec"):
+        exposure_batch({"color": batch["noisy_color"], "noisy_color": batch["noisy_color"]}, "color_albedo_normal",
+                       torch.Generator().manual_seed(0), 1.0, (lo, hi))

@@ -107,10 +107,12 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
 
 
 def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_path):
-    """The rate is a function of the step and the transforms of (seed, step): a resumed run repeats the losses."""
+    """The rate is a function of the step and the transforms of (seed, step), exposures included: a resumed run
+    repeats the losses."""
     from kpcn.schedule import lr_at
 
-    kw = dict(stage1_steps=4, stage2_steps=3, schedule="onecycle", augment=True, loss="l1_msssim")
+    kw = dict(stage1_steps=4, stage2_steps=3, schedule="onecycle", augment=True, loss="l1_msssim",
+              exposure_augment=0.5, exposure_range=(0.03, 1.0))
     full = train(tiny_cfg(tiny_dataset, tmp_path, name="full", **kw), progress=False)["losses"]
     cut = tiny_cfg(tiny_dataset, tmp_path, name="cut", **{**kw, "stage1_steps": 4, "stage2_steps": 0})
     first = train(cut, progress=False)["losses"]
@@ -121,6 +123,18 @@ def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_pat
     assert rates[0] == pytest.approx(1e-3 / 25) and max(rates) == pytest.approx(1e-3, rel=1e-3)
     assert int(np.argmax(rates)) in (19, 20) and rates[-1] < 1e-6
     assert all(a <= b for a, b in zip(rates[:20], rates[1:21])) and all(a >= b for a, b in zip(rates[20:], rates[21:]))
+
+
+def test_exposure_augmentation_needs_keys_and_a_split_spec(tiny_dataset, tmp_path):
+    from kpcn.config import ConfigError
+
+    with pytest.raises(ConfigError, match="exposure_range"):  # a KPCN declares no range of its own
+        train(tiny_cfg(tiny_dataset, tmp_path, name="e1", stage1_steps=1, stage2_steps=0, exposure_augment=0.5),
+              progress=False)
+    with pytest.raises(ConfigError, match="exposure_augment"):
+        load_config(RunConfig, None, ["train.exposure_augment=1.5"])
+    with pytest.raises(ConfigError, match="exposure_range"):
+        load_config(RunConfig, None, ["train.exposure_range=[0.5, 0.1]"])
 
 
 def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_dataset, tmp_path):

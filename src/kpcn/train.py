@@ -73,7 +73,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .augment import augment_batch
+from .augment import augment_batch, exposure_batch
 from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
 from .data import FrameDataset, PatchDataset
@@ -140,6 +140,13 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     if cfg.data.converged_max_noise is not None and spec.colour_variance is None:
         raise ConfigError(f"data.converged_max_noise: the input spec {spec.name} carries no variance to tell "
                           f"converged pixels from noisy ones; set it to null or train a model that reads variances")
+    exposure_keys = cfg.train.exposure_range or model.exposure_range
+    if cfg.train.exposure_augment:
+        if exposure_keys is None:
+            raise ConfigError("train.exposure_augment: give train.exposure_range (the keys to draw from) or a model "
+                              "with an exposure_range")
+        if set(spec.branches) != {"diffuse", "specular"}:
+            raise ConfigError(f"train.exposure_augment: needs a diffuse/specular split input spec, not {spec.name}")
     if cfg.train.detail_stage and model.detail_regression is None:  # a stage implies a spec with the normal
         raise ConfigError(f"train.detail_stage: the model has no detail stage to train for (set model.detail_radius "
                           f"> 0 with an input spec that reads the normal; {spec.name} reads {spec.layers})")
@@ -255,6 +262,10 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         batch = {k: v.to(d.device, non_blocking=True) for k, v in batch.items()}
         if cfg.train.augment:  # the same transforms for the same (seed, step, rank): resumable
             batch = augment_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_003 + step * 7919 + d.rank))
+        if cfg.train.exposure_augment:
+            batch = exposure_batch(batch, spec, torch.Generator().manual_seed(cfg.train.seed * 1_000_033 + step * 7907
+                                                                              + d.rank),
+                                   cfg.train.exposure_augment, exposure_keys)
         if teacher is not None:  # after augmenting: the teacher sees what the model sees
             batch = distill_targets(teacher, batch, cfg.train.distill_min_spp,
                                     model if cfg.train.detail_stage else None, cfg.train.distill_tta)

@@ -20,6 +20,7 @@ from pathlib import Path, PurePath
 
 from .config import ConfigError, from_dict
 from .constants import PRECISIONS
+from .exposure import check_exposure_range
 from .schedule import SCHEDULES
 
 __all__ = ["RunConfig", "DataConfig", "TrainConfig", "check_model_section"]
@@ -138,6 +139,11 @@ class TrainConfig:
     schedule: str = "constant"  #: constant, or onecycle (per stage: warm-up to lr, cosine down; see kpcn.schedule)
     warmup: float = 0.15  #: onecycle: the fraction of each stage spent warming up
     augment: bool = True  #: flips, transposes and RGB permutations of every patch (kpcn.augment)
+    #: the fraction of patches shown at another exposure, their key drawn log-uniform in ``exposure_range``
+    #: (kpcn.augment.exposure_batch; split input specs); 0: every patch at its own
+    exposure_augment: float = 0.0
+    #: the keys exposure_augment draws from; None: the model config's exposure_range
+    exposure_range: tuple[float, float] | None = None
     grad_clip: float = 1.0
     val_every: int = 250
     ckpt_every: int = 100  #: also writes checkpoints/step_<N>.pt
@@ -212,6 +218,12 @@ class TrainConfig:
             raise ConfigError("train.stage1_steps + train.stage2_steps: must be >= 1, got 0")
         for key in ("lr", "stage2_lr"):
             _positive("train", self, key)
+        if not 0.0 <= float(self.exposure_augment) <= 1.0:
+            raise ConfigError(f"train.exposure_augment: must be a fraction in [0, 1], got {self.exposure_augment!r}")
+        try:
+            check_exposure_range(self.exposure_range, "train.exposure_range")
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
         if self.schedule not in SCHEDULES:
             raise ConfigError(f"train.schedule: expected one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
         if not (0.0 <= self.warmup < 1.0):
