@@ -19,8 +19,8 @@ How a frame is processed
   of rows at a time, the network once at half resolution, the output assembled
   band by band (same result to float rounding; ``rows=False`` turns it off).
 * **Exposure**: a model that declares ``exposure_range`` (the default U-Net) denoises a frame whose exposure key
-  lies outside it at the nearer bound's exposure — its radiance layers scaled, the result scaled back
-  (:mod:`kpcn.exposure`); a frame inside is denoised as it is.
+  lies outside it at the range's centre (:func:`kpcn.exposure.exposure_scale`: continuous in the key) — its
+  radiance layers scaled, the result scaled back; a frame inside is denoised as it is.
 * **What a frame does not need is left out** (``skip=True``, the default):
 
   - a branch with no positive radiance anywhere in the frame is not run and
@@ -199,7 +199,7 @@ def denoise_result(
     if plans and not net.zero_preserving:
         raise ValueError(f"denoise: layers=... needs a kernel-predicting model; {describe(net)} predicts no kernels")
     aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
-    # a frame far brighter or darker than the model's training frames is denoised at the nearer bound's exposure
+    # a frame far brighter or darker than the model's training frames is denoised at its range's centre
     key = frame_key(_noisy_color(frame)) if net.exposure_range is not None else None
     scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
     if scale != 1.0:

@@ -32,7 +32,8 @@ model is only what it declares here:
   after the network, outside ``forward``; a stage without weights, which training applies only with
   ``train.detail_stage`` (:func:`kpcn.train_steps.with_detail`).
 * ``exposure_range`` — ``(lo, hi)`` or None: the exposure keys of the frames the weights were trained on; the
-  inference pipeline brings a frame outside them to the nearer bound and its result back (:mod:`kpcn.exposure`).
+  inference pipeline denoises a frame outside them at the range's centre and scales the result back
+  (:mod:`kpcn.exposure`).
 
 ``forward(inputs, context=None)`` takes the dict an input spec builds
 (``(B, C, H, W)`` tensors: one per branch, plus ``albedo``; a branch that is

@@ -104,9 +104,9 @@ class UNetConfig:
         detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
             exceeds ``c`` (fireflies neither steer the fit nor come back through it).
         exposure_range: None, or ``[lo, hi]``: the exposure keys (:func:`kpcn.exposure.frame_key`) of the frames
-            the weights were trained on; :func:`kpcn.inference.denoise` scales a frame whose key lies outside to the
-            nearer bound and its result back (:mod:`kpcn.exposure`). An inference setting with no weights, like the
-            detail stage.
+            the weights were trained on; :func:`kpcn.inference.denoise` denoises a frame whose key lies outside at
+            the range's centre and scales its result back (:func:`kpcn.exposure.exposure_scale`). An inference
+            setting with no weights, like the detail stage.
     """
 
     input_spec: str = "kpcn_split"
