@@ -32,8 +32,8 @@ def test_the_key_is_the_geometric_mean_of_block_luminances():
     rng = np.random.default_rng(0)
     c = (rng.random((37, 50, 3)) ** 3).astype(np.float32)
     c[:16, :16] = 0  # a black block: left out, not a zero in the mean
-    c[20, 30] = -5.0  # negative radiance counts as 0
-    lum = np.maximum(c, 0) @ np.array([0.2126, 0.7152, 0.0722])
+    c[20, 30] = (-5.0, 0.5, 0.5)  # a negative luminance counts as 0
+    lum = np.maximum(c @ np.array([0.2126, 0.7152, 0.0722]), 0)
     blocks = [lum[y:y + 16, x:x + 16].mean() for y in range(0, 37, 16) for x in range(0, 50, 16)]
     blocks = np.array([b for b in blocks if b > 1e-8])
     assert len(blocks) == 11  # 3 x 4 blocks (the last row and column partial), one black

@@ -6,7 +6,7 @@ result, and far outside the brightness of the training frames a worse one (the d
 scenes: PSNR 38.87 dB at their own exposure, 33.00 with every radiance layer × 0.01; docs/measured.md,
 thirty-eighth session). The key measures a frame's brightness robustly:
 
-* the luminance (Rec. 709 weights) of the noisy colour, negative values as 0;
+* the luminance (Rec. 709 weights) of the noisy colour, a negative one as 0;
 * averaged over blocks of :data:`BLOCK` × :data:`BLOCK` pixels (partial blocks at the right and bottom over the
   pixels they have), so that a sparse low-spp frame — a few bright samples on black — has the key of its mean;
 * the geometric mean of the blocks' luminances above :data:`KEY_EPS` (black blocks, the sky of an empty
@@ -54,9 +54,9 @@ def frame_key(color: np.ndarray | torch.Tensor) -> float:
     c = torch.as_tensor(color)
     if c.ndim != 3 or c.shape[-1] != 3:
         raise ValueError(f"frame_key: expected a colour (H, W, 3), got shape {tuple(c.shape)}")
-    lum = (c.float().clamp_min(0) * c.new_tensor(LUMINANCE, dtype=torch.float32)).sum(-1)
+    lum = (c.float() @ torch.tensor(LUMINANCE, dtype=torch.float32)).clamp_min_(0.0)  # one pass (a matrix product)
     # partial blocks are averaged over the pixels they have (ceil_mode leaves the missing ones out of the divisor)
-    blocks = F.avg_pool2d(lum[None, None].double(), BLOCK, ceil_mode=True).reshape(-1)
+    blocks = F.avg_pool2d(lum[None, None], BLOCK, ceil_mode=True).reshape(-1).double()
     blocks = blocks[blocks > KEY_EPS]
     return float(torch.exp(torch.log(blocks).mean())) if blocks.numel() else 0.0
 
