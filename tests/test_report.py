@@ -32,6 +32,7 @@ from kpcn.report import (
     equal_time,
     equal_time_headline,
     evaluate_converged,
+    evaluate_exposure,
     evaluate_scene,
     mc_spp_for_error,
     nearest_spp,
@@ -353,14 +354,41 @@ def test_converged_input_table_has_one_row_per_method(report):
     assert len(summary["converged"]) == len(res.converged)
 
 
+def test_other_exposures_are_measured_for_every_method(report):
+    cfg, res = report
+    spp = nearest_spp(cfg.spp, cfg.exposure_spp)
+    assert sorted((r["scene"], r["method"], r["exposure"]) for r in res.exposure) == sorted(
+        (s, m, f) for s in cfg.scenes for m in _methods() for f in cfg.exposure_factors)
+    own = {(r["scene"], r["method"]): r for r in res.rows if r["spp"] == spp}
+    for r in res.exposure:
+        assert r["spp"] == spp and r["own_relmse"] == own[(r["scene"], r["method"])]["relmse"]
+        assert r["input_relmse"] == own[(r["scene"], MC)]["relmse"]
+        if r["method"] == "oidn" and r["scene"] != "test:no_hit":  # OIDN scales its input to a fixed key itself
+            assert r["relmse"] == pytest.approx(r["own_relmse"], rel=1e-3)
+    table = res.summary["exposure_table"]
+    assert [(t["method"], t["exposure"]) for t in table] == [(m, f) for f in cfg.exposure_factors for m in _methods()]
+    assert len(_csv_rows(res.paths["exposure_csv"])) == len(res.exposure)
+    md = res.paths["markdown"].read_text().split("## Other exposures")[1].split("\n## ")[0]
+    for m in _methods():
+        assert f"\n| {m} | 0.01 | {len(cfg.scenes)} |" in md
+    # a method that returns its input gives its input's error at any exposure
+    sr = _scene_renders(cfg, cfg.scenes[0])
+    for row in evaluate_exposure(sr, [Method("identity", lambda fr: fr["color"])], spp, [1e-3, 1e3], res.rows):
+        assert row["relmse"] == pytest.approx(row["input_relmse"], rel=1e-5)
+
+
 def test_frames_worse_than_their_input_are_all_listed(report):
     cfg, res = report
     mc = {(r["scene"], r["spp"]): r["relmse"] for r in res.rows if r["method"] == MC}
-    expect = {(r["scene"], r["spp"], r["method"]) for r in res.rows if r["method"] != MC and r["relmse"] > mc[(r["scene"], r["spp"])]}
-    expect |= {(r["scene"], r["spp"], r["method"]) for r in res.converged if r["relmse"] > r["input_relmse"]}
+    expect = {(r["scene"], r["spp"], r["method"], None) for r in res.rows
+              if r["method"] != MC and r["relmse"] > mc[(r["scene"], r["spp"])]}
+    expect |= {(r["scene"], r["spp"], r["method"], None) for r in res.converged if r["relmse"] > r["input_relmse"]}
+    expect |= {(r["scene"], r["spp"], r["method"], r["exposure"]) for r in res.exposure
+               if r["relmse"] > r["input_relmse"]}
     worse = res.summary["worse_than_input"]
-    assert {(w["scene"], w["spp"], w["method"]) for w in worse} == expect and len(worse) == len(expect)
-    assert res.summary["frames_checked"] == len(res.rows) - len(mc) + len(res.converged)
+    assert {(w["scene"], w["spp"], w["method"], w.get("exposure")) for w in worse} == expect
+    assert len(worse) == len(expect)
+    assert res.summary["frames_checked"] == len(res.rows) - len(mc) + len(res.converged) + len(res.exposure)
     md = res.paths["markdown"].read_text().split("## Frames made worse than their input")[1].split("\n## ")[0]
     if worse:
         assert f"**{len(worse)} of {res.summary['frames_checked']} frames**" in md

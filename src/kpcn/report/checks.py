@@ -4,7 +4,10 @@
   much it changes it (relMSE and PSNR of the output against that input) and its
   error against the reference next to the input's own. A denoiser must leave a
   converged input nearly as it is.
-* :func:`worse_than_input`: every frame (ladder and converged) where a method's
+* :func:`evaluate_exposure`: every method on one spp's input at other exposures (its radiance × 0.01, × 100);
+  its error against the reference beside its error at the frame's own exposure. A frame's units (a renderer
+  in physical units, an exposure change) must not change how well it is denoised.
+* :func:`worse_than_input`: every frame (ladder, converged and other exposures) where a method's
   output is further from the reference than its noisy input was.
 * :func:`against_oidn`: per model and spp, whether its mean relMSE, PSNR and SSIM
   all beat OIDN's.
@@ -16,6 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..exposure import scale_layers
+from ..io import Frame
 from ..metrics import all_metrics, psnr, relmse
 from .analysis import is_ref_limited, reference_floor
 from .cache import SceneRenders
@@ -61,6 +66,54 @@ def evaluate_converged(sr: SceneRenders, methods: Sequence[Method], floor_factor
     return rows
 
 
+#: per-scene fields of the exposure table (``exposure.csv``)
+EXPOSURE_FIELDS = ("scene", "method", "spp", "exposure", "relmse", "psnr", "ssim", "own_relmse", "own_psnr",
+                   "own_ssim", "input_relmse", "worse_than_input", "ref_limited")
+
+
+def evaluate_exposure(sr: SceneRenders, methods: Sequence[Method], spp: int, factors: Sequence[float],
+                      rows: Sequence[dict], floor_factor: float = 3.0) -> list[dict]:
+    """One row per method and factor: the scene's ``spp`` input with every radiance layer × the factor (its
+    variances × its square; :func:`kpcn.exposure.scale_layers`), denoised, the output divided by the factor and
+    compared with the reference; ``own_*``: the same method's row at the frame's own exposure (from ``rows``);
+    ``input_relmse``: the noisy input's."""
+    frame = sr.inputs.get(spp)
+    if frame is None or not factors:
+        return []
+    ref = sr.reference["color"]
+    own = {r["method"]: r for r in rows if r["scene"] == sr.label and r["spp"] == spp}
+    inp = own[MC]["relmse"] if MC in own else all_metrics(frame["color"], ref)["relmse"]
+    floor = reference_floor(sr.reference)
+    out = []
+    for f in factors:
+        scaled = Frame(scale_layers(frame.layers, float(f)), dict(frame.meta), frame.path)
+        for m in methods:
+            img, _ = m(scaled)
+            met = all_metrics(img / np.float32(f), ref)
+            base = own.get(m.name, {})
+            out.append({"scene": sr.label, "method": m.name, "spp": spp, "exposure": float(f),
+                        **{k: met[k] for k in ("relmse", "psnr", "ssim")},
+                        **{f"own_{k}": base.get(k, float("nan")) for k in ("relmse", "psnr", "ssim")},
+                        "input_relmse": inp, "worse_than_input": met["relmse"] > inp,
+                        "ref_limited": is_ref_limited(inp, floor, floor_factor)})
+    return out
+
+
+def exposure_table(rows: Sequence[dict]) -> list[dict]:
+    """One row per method and exposure: over scenes, mean relMSE, PSNR and SSIM at that exposure and at the
+    frames' own, the largest ratio of a scene's relMSE to its own, and the frames made worse than their input."""
+    out = []
+    for key in dict.fromkeys((r["method"], r["exposure"]) for r in rows):
+        rs = [r for r in rows if (r["method"], r["exposure"]) == key]
+        row = {"method": key[0], "exposure": key[1], "spp": rs[0]["spp"], "scenes": len(rs)}
+        for k in ("relmse", "psnr", "ssim", "own_relmse", "own_psnr", "own_ssim"):
+            row[k] = float(np.mean([r[k] for r in rs]))
+        row["relmse_ratio_max"] = float(max(r["relmse"] / max(r["own_relmse"], 1e-30) for r in rs))
+        row["worse_than_input"] = sum(bool(r["worse_than_input"]) for r in rs)
+        out.append(row)
+    return out
+
+
 def converged_table(rows: Sequence[dict]) -> list[dict]:
     """One row per method: over scenes, the mean and largest change of the converged input
     (relMSE against the input), the median PSNR against the input, the mean relMSE against the
@@ -83,12 +136,14 @@ def converged_table(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
-def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = ()) -> list[dict]:
+def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = (), exposure: Sequence[dict] = ()
+                     ) -> list[dict]:
     """Frames where a method's relMSE against the reference is above its noisy input's.
 
     ``rows``: the ladder rows (the input's relMSE is the ``mc`` row of the same
-    scene and spp); ``converged``: :func:`evaluate_converged` rows. Each item:
-    ``scene, spp, method, relmse, input_relmse, ratio, converged, ref_limited``.
+    scene and spp); ``converged``: :func:`evaluate_converged` rows; ``exposure``: :func:`evaluate_exposure` rows.
+    Each item: ``scene, spp, method, relmse, input_relmse, ratio, converged, ref_limited`` (and ``exposure``,
+    the factor, for a frame at another exposure).
     """
     inputs = {(r["scene"], r["spp"]): r for r in rows if r["method"] == MC}
     out = []
@@ -103,6 +158,11 @@ def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = ()) -> li
             out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
                         "input_relmse": r["input_relmse"], "ratio": r["relmse"] / max(r["input_relmse"], 1e-30),
                         "converged": True, "ref_limited": bool(r["ref_limited"])})
+    for r in exposure:
+        if r["worse_than_input"]:
+            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
+                        "input_relmse": r["input_relmse"], "ratio": r["relmse"] / max(r["input_relmse"], 1e-30),
+                        "converged": False, "ref_limited": bool(r["ref_limited"]), "exposure": r["exposure"]})
     return out
 
 

@@ -39,6 +39,10 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("--ref-spp-max", type=int, help="the most samples a refined reference gets (default: 16384)")
     p.add_argument("--converged-spp", type=int,
                    help="spp of the converged input every method is also run on, 0 for none (default: 1024)")
+    p.add_argument("--exposure-factors", type=float, nargs="*",
+                   help="every method is also run on the --exposure-spp input with its radiance times each factor; "
+                        "none: leave it out (default: 0.01 100)")
+    p.add_argument("--exposure-spp", type=int, help="spp of the inputs run at other exposures (default: 4)")
     p.add_argument("--floor-factor", type=float,
                    help="flag relMSE below this many times the reference's own noise (default: 3)")
     p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 256 256")
@@ -68,6 +72,7 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
         "floor_factor": a.floor_factor, "resolution": a.resolution, "models": a.models,
         "out": a.out, "name": a.name, "seed": a.seed, "device": a.device, "tile": a.tile, "repeats": a.repeats,
         "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
+        "exposure_factors": a.exposure_factors, "exposure_spp": a.exposure_spp,
         "oidn": False if a.no_oidn else None, "rerender": True if a.rerender else None,
         "trust_checkpoint": True if a.trust_checkpoint else None,
     }

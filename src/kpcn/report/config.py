@@ -68,6 +68,9 @@ class ReportConfig:
     repeats: int = 1  #: timed denoise calls per frame; the median is reported (the result of the last is kept)
     equal_time_spp: int = 8  #: the model's spp for the equal-time figure (nearest ladder spp if absent)
     contact_spp: int = 8  #: spp shown in the contact sheet (nearest ladder spp if absent)
+    #: every method is also run on the ``exposure_spp`` input (nearest ladder spp) × each factor (empty: none)
+    exposure_factors: list[float] = field(default_factory=lambda: [0.01, 100.0])
+    exposure_spp: int = 4
     crop: int = 128  #: side of the centre crop in the contact sheet
     rerender: bool = False
     max_depth: int = 8
@@ -107,6 +110,8 @@ class ReportConfig:
             log.warning("converged input spp %d is not below the reference spp %d", self.converged_spp, self.ref_spp)
         if len(self.resolution) != 2 or min(self.resolution) < 8:
             raise ValueError(f"resolution must be (width, height), each >= 8, got {self.resolution}")
+        if any(not (math.isfinite(float(f)) and float(f) > 0) for f in self.exposure_factors):
+            raise ValueError(f"exposure_factors must be finite and > 0, got {self.exposure_factors}")
         if not self.floor_factor > 0:
             raise ValueError(f"floor_factor must be > 0, got {self.floor_factor}")
         if len(self.slope_range) != 2 or not self.slope_range[0] < self.slope_range[1] < 0:

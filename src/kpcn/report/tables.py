@@ -159,6 +159,19 @@ def _converged_markdown(ct: Sequence[dict], summary: dict) -> str:
     return text + "\n\n" + _md_table(ct, cols)
 
 
+def _exposure_markdown(et: Sequence[dict]) -> str:
+    if not et:
+        return "Not measured (exposure_factors is empty)."
+    text = (f"Each method on the {et[0]['spp']}-spp inputs with every radiance layer multiplied by the factor (the "
+            "same scene in other units), its output divided by it; *own*: the same method at the frames' own "
+            "exposure. A denoiser's result should not depend on the units of the radiance.")
+    cols = [("method", "method"), ("exposure", "× exposure"), ("scenes", "scenes"), ("relmse", "relMSE"),
+            ("psnr", "PSNR"), ("ssim", "SSIM"), ("own_relmse", "own relMSE"), ("own_psnr", "own PSNR"),
+            ("own_ssim", "own SSIM"), ("relmse_ratio_max", "largest relMSE / own"),
+            ("worse_than_input", "frames worse than input")]
+    return text + "\n\n" + _md_table(et, cols)
+
+
 def _worse_markdown(worse: Sequence[dict], summary: dict) -> str:
     n_frames = summary.get("frames_checked", 0)
     if not worse:
@@ -170,6 +183,7 @@ def _worse_markdown(worse: Sequence[dict], summary: dict) -> str:
              f"(relMSE output > relMSE input): " + ", ".join(f"{m} {c}" for m, c in counts.items()) + ".", ""]
     for w in worse:
         tag = " (converged input)" if w["converged"] else ""
+        tag += f" (× {w['exposure']:g} exposure)" if w.get("exposure") else ""
         tag += f" (input within {_k(summary)} reference noise)" if w["ref_limited"] else ""
         lines.append(f"- {w['scene']} @ {w['spp']} spp{tag}: {w['method']} relMSE {w['relmse']:.4g} > "
                      f"input {w['input_relmse']:.4g} (×{w['ratio']:.3g})")
@@ -235,11 +249,12 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
     parts += ["", "## Methods", "", _methods_markdown(summary.get("methods_table", []))]
     parts += ["", "## Converged input", "",
               _converged_markdown(summary.get("converged_table", []), summary)]
+    parts += ["", "## Other exposures", "", _exposure_markdown(summary.get("exposure_table", []))]
     parts += ["", "## Frames made worse than their input", "", _worse_markdown(summary.get("worse_than_input", []), summary)]
     parts += ["", "## Worse with more samples", "", _more_samples_markdown(summary.get("worse_with_more_samples", []))]
     parts += ["", "## Per scene", "", _md_table(rows, [("scene", "scene"), ("spp", "spp"), ("method", "method"),
                                                         *_ROW_COLS, ("ref_limited", f"below {k} ref noise")])]
     parts += ["", "Figures: `error_vs_time.png` (relMSE against total seconds; dashed: "
                   f"{k} the reference's noise), `contact_sheet.png` ({cfg['contact_spp']} spp). Tables: "
-                  "`results.csv`, `equal_time.csv`, `converged.csv`, `summary.json`."]
+                  "`results.csv`, `equal_time.csv`, `converged.csv`, `exposure.csv`, `summary.json`."]
     return "\n".join(parts) + "\n"
