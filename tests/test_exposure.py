@@ -6,7 +6,7 @@ import copy
 import numpy as np
 import pytest
 
-from kpcn.exposure import TRANSITION, check_exposure_range, exposure_scale, frame_key, scale_layers
+from kpcn.exposure import TRAINED_KEYS, TRANSITION, check_exposure_range, exposure_scale, frame_key, scale_layers
 from kpcn.inference import denoise, denoise_result, load_model
 from kpcn.io import Frame
 from kpcn.metrics import all_metrics
@@ -101,11 +101,16 @@ def test_frames_far_outside_the_range_are_denoised_at_its_centre(render, models)
         np.testing.assert_allclose(res.color / e, at_centre, rtol=1e-4, atol=1e-4 * at_centre.max())
 
 
-def test_a_dark_or_bright_render_is_not_made_worse_than_its_input(render, models):
-    """Without the range the same weights return test:glossy at 1/1000 of its exposure further from the
-    reference than the noisy input (relMSE 0.43 against 0.17, 4 spp); with it, close to their result at the
-    frame's own exposure."""
-    net, raw = models
+@pytest.mark.parametrize("name", ["unet_kpcn", "kpcn:can_small_r", "kpcn:novar_small_r"])
+def test_a_dark_or_bright_render_is_not_made_worse_than_its_input(render, name):
+    """Every shipped default (the U-Net, and those for files without variances or with colour, albedo and normal
+    only) carries the procedural training keys. Without the range the U-Net returns test:glossy at 1/1000 of its
+    exposure further from the reference than the noisy input (relMSE 0.43 against 0.17, 4 spp); with it, close
+    to its result at the frame's own exposure (within 1.25x its relMSE; measured 0.99-1.07x)."""
+    net = load_model(name, "cpu")
+    assert net.exposure_range == TRAINED_KEYS
+    raw = copy.deepcopy(net)
+    raw.config.exposure_range = None
     frame = render("test:glossy", spp=4, resolution=RES)
     ref = render("test:glossy", spp=256, seed=2, role=1, resolution=RES)["color"]
     noisy = all_metrics(frame["color"], ref)["relmse"]
@@ -113,7 +118,9 @@ def test_a_dark_or_bright_render_is_not_made_worse_than_its_input(render, models
     for e in (1e-3, 1e3):
         with_range = all_metrics(denoise(_scaled(frame, e), net, device="cpu") / e, ref)["relmse"]
         without = all_metrics(denoise(_scaled(frame, e), raw, device="cpu") / e, ref)["relmse"]
-        assert with_range < without and with_range < 2 * own < noisy, (e, with_range, without, own, noisy)
+        assert with_range < 1.25 * own < noisy, (e, with_range, own, noisy)
+        if e < 1:  # without the range a dark frame came back far from the reference (the U-Net: worse than noisy)
+            assert with_range < 0.75 * without, (e, with_range, without)
 
 
 def test_light_groups_follow_the_beauty_at_another_exposure(models):

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "LUMINANCE", "frame_key", "exposure_scale", "scale_layers", "RADIANCE_LAYERS",
+__all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "frame_key", "exposure_scale", "scale_layers", "RADIANCE_LAYERS",
            "check_exposure_range"]
 
 #: side of the blocks whose mean luminances the key averages (pixels)
@@ -44,6 +44,10 @@ KEY_EPS = 1e-8
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 #: beyond a bound, the factor of exposure over which the key a frame is denoised at moves from the bound to the centre
 TRANSITION = 2.0
+#: the keys of kpcn's procedural training frames, their 2nd and 98th percentiles rounded (data/f1 and data/f2: 1392
+#: frames at 2-256 spp, 0.032 and 0.997; ``python -m kpcn.exposure data/f1 data/f2``); Blender Cycles' generated
+#: scenes lie inside (0.12-0.41 at 4 spp): the range the shipped defaults carry
+TRAINED_KEYS = (0.03, 1.0)
 #: the layers that are radiance (scaled by ``s``; a ``<name>Variance`` layer beside one by ``s²``)
 RADIANCE_LAYERS = ("color", "diffuse", "specular")
 

@@ -15,6 +15,7 @@ from torch import nn
 
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import PADDING_MODES
+from ..exposure import check_exposure_range
 from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
 
@@ -64,6 +65,8 @@ class BranchConfig:
             bright; ``"none"`` feeds the raw features (the paper).
         detail_radius, detail_eps, detail_clip: the detail stage after the network (KPCN only; 0: off), as
             :class:`~kpcn.models.UNetConfig`'s.
+        exposure_range: None, or ``[lo, hi]``: the exposure keys of the training frames, as
+            :class:`~kpcn.models.UNetConfig`'s (an inference setting).
     """
 
     layers: int = 9
@@ -83,10 +86,12 @@ class BranchConfig:
     detail_radius: int = 0
     detail_eps: float = 0.01
     detail_clip: float = 0.0
+    exposure_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
         check_detail_config(self, spec, "BranchConfig")
+        check_exposure_range(self.exposure_range, "BranchConfig.exposure_range")
         if self.in_channels is None:
             self.in_channels = spec.channels
         if self.in_channels != spec.channels:

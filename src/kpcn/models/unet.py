@@ -60,16 +60,12 @@ from __future__ import annotations
 
 import torch
 
+from ..exposure import TRAINED_KEYS
 from .base import DETAIL_STAGE, DenoiserModel, check_inputs
 from .kernel_heads import MultiScaleApply, MultiScaleKernels
 from .registry import register_model, register_weights
 from .unet_branch import UNetBranch
 from .unet_config import UNetConfig
-
-#: the exposure keys (:func:`kpcn.exposure.frame_key`) of the default's last training frames, their 2nd and 98th
-#: percentiles rounded (data/f1 and data/f2: 1392 procedural frames at 2-256 spp, 0.032 and 0.997;
-#: ``python -m kpcn.exposure data/f1 data/f2``): a frame outside is denoised at their centre (kpcn.exposure)
-TRAINED_KEYS = (0.03, 1.0)
 
 __all__ = ["UNetConfig", "UNetBranch", "UNetKPCN", "MultiScaleKernels", "MultiScaleApply"]
 
