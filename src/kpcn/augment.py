@@ -177,7 +177,8 @@ def _branch_at_exposure(x: torch.Tensor, s: torch.Tensor, spec: InputSpec, log: 
     return x
 
 
-def batch_at_exposure(batch: dict[str, torch.Tensor], spec: InputSpec | str, s: torch.Tensor) -> dict[str, torch.Tensor]:
+def batch_at_exposure(batch: dict[str, torch.Tensor], spec: InputSpec | str, s: torch.Tensor
+                      ) -> dict[str, torch.Tensor]:
     """A training batch of a split input spec as the same patches rendered at ``s`` ``(B,)`` times the exposure:
     the branches' features (:func:`_branch_at_exposure`), the targets in each branch's space, ``noisy_color`` and
     ``y_color``; albedo, normal and labels unchanged."""

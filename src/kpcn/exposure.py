@@ -9,14 +9,15 @@ thirty-eighth session). The key measures a frame's brightness robustly:
 * the luminance (Rec. 709 weights) of the noisy colour, a negative one as 0;
 * averaged over blocks of :data:`BLOCK` × :data:`BLOCK` pixels (partial blocks at the right and bottom over the
   pixels they have), so that a sparse low-spp frame — a few bright samples on black — has the key of its mean;
-* the geometric mean of the blocks' luminances above :data:`KEY_EPS` (black blocks, the sky of an empty
-  background, do not pull it to zero); 0 for a frame with no such block.
+* the geometric mean of the blocks' luminances above :data:`KEY_EPS` times the brightest block's (black blocks,
+  the sky of an empty background, do not pull it to zero; relative, so that the key of a frame × s is s times
+  its key at any s); 0 for a black frame.
 
 It hardly depends on the sample count (procedural scenes: 2 spp and 256 spp within a few per cent). A model declares
 ``exposure_range = (lo, hi)``, the keys of the frames it was trained on. Inside the range nothing is scaled: the
 result is what the model gives the frame as it is. A frame whose key lies outside is denoised at the key
-:func:`exposure_scale` gives — every radiance layer × ``s``, its variance × ``s²`` (:func:`scale_layers`) — and the
-result divided by ``s`` (:func:`kpcn.inference.denoise`): the range's centre ``sqrt(lo hi)`` for a frame more than
+:func:`exposure_scale` gives — every radiance layer × ``s``, its variance × ``s²`` (:func:`scale_layers`) — and
+the result divided by ``s`` (:func:`kpcn.inference.denoise`): the range's centre ``sqrt(lo hi)`` for a frame more than
 :data:`TRANSITION` × beyond a bound, and between the bound and the centre (log-linear in the key) in that last
 factor, so that the result changes continuously with the exposure. The centre rather than the nearer bound: at a
 bound the network works in one end of its input transform, and the report's 16 scenes at × 0.01 of their
@@ -33,13 +34,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "frame_key", "exposure_scale", "scale_layers", "RADIANCE_LAYERS",
-           "check_exposure_range"]
+__all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "SCALE_LIMIT", "frame_key", "exposure_scale",
+           "scale_layers", "RADIANCE_LAYERS", "check_exposure_range"]
 
 #: side of the blocks whose mean luminances the key averages (pixels)
 BLOCK = 16
-#: blocks at or below this luminance are left out of the key
+#: blocks at or below this fraction of the brightest block's luminance are left out of the key
 KEY_EPS = 1e-8
+#: the factors exposure_scale returns stay within [1 / SCALE_LIMIT, SCALE_LIMIT] (float32 radiance, and its
+#: variance times the factor squared, stay finite; a frame dimmer than that is black to float32's precision)
+SCALE_LIMIT = 1e18
 #: Rec. 709 luminance weights of R, G, B
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 #: beyond a bound, the factor of exposure over which the key a frame is denoised at moves from the bound to the centre
@@ -54,14 +58,15 @@ RADIANCE_LAYERS = ("color", "diffuse", "specular")
 
 def frame_key(color: np.ndarray | torch.Tensor) -> float:
     """The exposure key of a colour ``(H, W, 3)``: the geometric mean of its :data:`BLOCK`-pixel blocks' mean
-    luminances above :data:`KEY_EPS` (module docstring); 0.0 when no block is above it."""
+    luminances above :data:`KEY_EPS` times the brightest's (module docstring); 0.0 for a black frame."""
     c = torch.as_tensor(color)
     if c.ndim != 3 or c.shape[-1] != 3:
         raise ValueError(f"frame_key: expected a colour (H, W, 3), got shape {tuple(c.shape)}")
     lum = (c.float() @ torch.tensor(LUMINANCE, dtype=torch.float32)).clamp_min_(0.0)  # one pass (a matrix product)
     # partial blocks are averaged over the pixels they have (ceil_mode leaves the missing ones out of the divisor)
     blocks = F.avg_pool2d(lum[None, None], BLOCK, ceil_mode=True).reshape(-1).double()
-    blocks = blocks[blocks > KEY_EPS]
+    blocks = blocks[blocks > KEY_EPS * float(blocks.max())] if blocks.numel() else blocks
+    blocks = blocks[blocks > 0]
     return float(torch.exp(torch.log(blocks).mean())) if blocks.numel() else 0.0
 
 
@@ -93,7 +98,7 @@ def exposure_scale(key: float, key_range: Sequence[float] | None) -> float:
     bound = lo if key < lo else hi
     centre = math.sqrt(lo * hi)
     t = min(1.0, abs(math.log(key / bound)) / math.log(TRANSITION))
-    return bound * (centre / bound) ** t / key
+    return min(max(bound * (centre / bound) ** t / key, 1.0 / SCALE_LIMIT), SCALE_LIMIT)
 
 
 def scale_layers(layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str] = ()) -> dict[str, np.ndarray]:
@@ -104,8 +109,8 @@ def scale_layers(layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str
     for name, a in layers.items():
         if name in names:
             out[name] = (a * np.float32(s)).astype(np.float32, copy=False)
-        elif name.endswith("Variance") and name[: -len("Variance")] in names:
-            out[name] = (a * np.float32(s * s)).astype(np.float32, copy=False)
+        elif name.endswith("Variance") and name[: -len("Variance")] in names:  # × s twice: s² may overflow
+            out[name] = (a * np.float32(s) * np.float32(s)).astype(np.float32, copy=False)
     return out
 
 

@@ -126,11 +126,13 @@ from .run import ReportResult, build_summary, run_report, write_outputs
 from .tables import equal_time_markdown, markdown_report, write_csv
 
 __all__ = [
-    "CONVERGED_FIELDS", "CONVERGED_ROLE", "EXPOSURE_FIELDS", "CSV_FIELDS", "DEFAULT_SCENES", "INPUT_ROLE_BASE", "MC", "METRICS", "OIDN",
+    "CONVERGED_FIELDS", "CONVERGED_ROLE", "EXPOSURE_FIELDS",
+    "CSV_FIELDS", "DEFAULT_SCENES", "INPUT_ROLE_BASE", "MC", "METRICS", "OIDN",
     "OIDN_MACS_PER_PX", "SETTLE_SECONDS", "TIMES", "WARMUP_ROLE",
     "Method", "ReportConfig", "ReportResult", "SceneRenders",
     "against_oidn", "build_methods", "build_summary", "contact_sheet", "converged_table", "equal_time",
-    "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_exposure", "evaluate_scene", "exposure_table", "fitted_slope",
+    "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_exposure",
+    "evaluate_scene", "exposure_table", "fitted_slope",
     "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "model_method",
     "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "refined_spp",
     "render_scene", "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
