@@ -199,12 +199,6 @@ def denoise_result(
     if plans and not net.zero_preserving:
         raise ValueError(f"denoise: layers=... needs a kernel-predicting model; {describe(net)} predicts no kernels")
     aov_out = {p.name: np.zeros((h, w, 3), dtype=np.float32) for p in plans}
-    # a frame far brighter or darker than the model's training frames is denoised at its range's centre
-    key = frame_key(_noisy_color(frame)) if net.exposure_range is not None else None
-    scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
-    if scale != 1.0:
-        frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
-                      frame.meta, frame.path, frame.nonfinite)
     halo = int(net.receptive_radius) + spec.halo
     align = int(net.alignment)
     use_half = bool(half) and dev.type == "cuda"
@@ -217,11 +211,17 @@ def denoise_result(
     stats = DenoiseStats(size=(h, w), tile=tile_size(tile, align) or max(h, w), halo=halo, alignment=align,
                          device=str(dev), read_seconds=read_s, nonfinite=dict(frame.nonfinite),
                          branch_tiles_run={b: 0 for b in spec.branches},
-                         branch_tiles_skipped={b: 0 for b in spec.branches},
-                         exposure_key=key, exposure_scale=scale)
+                         branch_tiles_skipped={b: 0 for b in spec.branches})
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
+    # a frame far brighter or darker than the model's training frames is denoised at its range's centre
+    key = frame_key(_noisy_color(frame)) if net.exposure_range is not None else None
+    scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
+    if scale != 1.0:
+        frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
+                      frame.meta, frame.path, frame.nonfinite)
+    stats.exposure_key, stats.exposure_scale = key, scale
 
     # branches whose kernels filter plain layers run everywhere (on a zero branch a kernel predictor's output is 0)
     needed = {b for p in plans if not p.group for b in p.parts}
