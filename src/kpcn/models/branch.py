@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..exposure import check_exposure_range
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import PADDING_MODES
-from ..exposure import check_exposure_range
 from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
 
