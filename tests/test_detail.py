@@ -75,13 +75,14 @@ def test_tiles_and_row_bands_give_the_whole_frame_result(bumpy, monkeypatch):
 def test_a_tag_sets_config_over_its_file():
     """wide64r is wide64h's file with the stage switched on: one file, two configs, each named by describe."""
     r, h = weights_entry("unet_kpcn", "wide64r"), weights_entry("unet_kpcn", "wide64h")
-    assert r.path == h.path and dict(r.config) == {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
+    keys = {"exposure_range": (0.03, 1.0)}  # every shipped tag: the procedural training frames' exposure keys
+    assert r.path == h.path and dict(r.config) == {**keys, "detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
     default = weights_entry("unet_kpcn")
     # the default has the stage too, with the smaller ridge that wide64e (wide64f's file) set over its file
     f, e = weights_entry("unet_kpcn", "wide64f"), weights_entry("unet_kpcn", "wide64e")
     assert default.tag == "wide64n" and e.path == f.path and dict(f.config) == dict(r.config)
-    assert dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
-    assert dict(default.config) == {**dict(e.config), "exposure_range": (0.03, 1.0)}  # and its exposure range
+    assert dict(default.config) == dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
+    assert dict(h.config) == keys
     assert load_model("unet_kpcn", "cpu").detail_regression == (6, 0.001, 0.15)
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")
     assert staged.detail_regression == (6, 0.01, 0.15) and plain.detail_regression is None

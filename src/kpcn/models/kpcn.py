@@ -54,7 +54,6 @@ import torch
 from torch import nn
 
 from ..constants import EPS
-from ..exposure import TRAINED_KEYS
 from ..inputs import SPECULAR_LOG_MAX, radiance_of, split_reconstruct
 from ..ops.kernel_apply import KernelApply
 from .base import DETAIL_STAGE, DenoiserModel
@@ -266,12 +265,10 @@ register_weights("kpcn", "novar_small", "kpcn_novar_small.safetensors",
 for _base, _gain, _files in (
         ("can_small", "+0.1-0.23 dB and +0.003-0.005 SSIM", "colour, albedo and normal only"),
         ("novar_small", "+0.2-0.3 dB and +0.005 SSIM at 16-64 spp", "the split but no variances")):
-    register_weights("kpcn", f"{_base}_r", f"kpcn_{_base}.safetensors",
-                     config=dict(DETAIL_STAGE, exposure_range=TRAINED_KEYS),
+    register_weights("kpcn", f"{_base}_r", f"kpcn_{_base}.safetensors", config=dict(DETAIL_STAGE),
                      description=f"kpcn:{_base}'s weights with the default U-Net's detail stage after the network "
                                  f"(kpcn.inference.detail, its settings): on the 18 validation scenes {_gain} over "
                                  f"{_base}, every figure better at 2-256 spp; denoise(path)'s model for files with "
-                                 f"{_files}; frames outside the procedural training keys (kpcn.exposure.TRAINED_KEYS) "
-                                 f"denoised at their centre")
+                                 f"{_files}")
 register_weights("dpcn", "small", "dpcn_small.safetensors",
                  description="DPCN 5x32, 5x5 convs (configs/small_dpcn.yaml), 44 procedural scenes")

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..exposure import check_exposure_range
 from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .base import DenoiserModel
@@ -48,6 +49,8 @@ class MSKPCNConfig:
         init_sigma: std (pixels) of the Gaussian the kernels start as.
         out_init_gain: scale of the last conv's initial weights.
         input_transform: ``log`` (signed log1p of the features), ``logvar`` or ``none``.
+        exposure_range: None, or ``[lo, hi]``: the exposure keys of the training frames, as
+            :class:`~kpcn.models.UNetConfig`'s (an inference setting).
     """
 
     input_spec: str = "kpcn_split"
@@ -59,9 +62,11 @@ class MSKPCNConfig:
     init_sigma: float = 1.5
     out_init_gain: float = 0.1
     input_transform: str = "log"
+    exposure_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
+        check_exposure_range(self.exposure_range, "MSKPCNConfig.exposure_range")
         for name in ("width", "tail_layers", "kernel_size"):
             v = getattr(self, name)
             if v < 1:

@@ -26,6 +26,7 @@ from typing import Callable
 from torch import nn
 
 from ..config import ConfigError, from_dict
+from ..exposure import TRAINED_KEYS
 
 __all__ = [
     "register_model",
@@ -92,15 +93,23 @@ def register_model(name: str, config: type | None = None) -> Callable:
 
 
 def register_weights(model: str, tag: str, filename: str, description: str = "", default: bool = False,
-                     config: dict | None = None) -> None:
+                     config: dict | None = None, exposure_range: tuple[float, float] | None = TRAINED_KEYS) -> None:
     """Register a shipped weights file (in :data:`WEIGHTS_DIR`) for ``model`` under ``tag``; ``config`` sets
     fields of the model's config over the file's (fields that add or remove no parameter: two tags can share a
     file, as timm's pretrained configs share weights with different inference settings).
+
+    ``exposure_range``: the exposure keys of the frames the file was trained on, set as the config field of that
+    name where the model's config has one and ``config`` does not set it (:mod:`kpcn.exposure`). Every shipped
+    file was trained on kpcn's procedural frames (and Cycles' generated scenes, whose keys lie inside), hence the
+    default :data:`kpcn.exposure.TRAINED_KEYS`; None: frames are denoised at their own exposure.
 
     Raises:
         ValueError: ``config`` names a field the model's config does not have.
     """
     entry_model = _MODELS.get(model)
+    if (exposure_range is not None and entry_model is not None and entry_model.config is not None
+            and "exposure_range" in {f.name for f in dataclasses.fields(entry_model.config)}):
+        config = {"exposure_range": tuple(exposure_range), **(config or {})}
     if config and entry_model is not None and entry_model.config is not None:
         known = {f.name for f in dataclasses.fields(entry_model.config)}
         unknown = sorted(set(config) - known)

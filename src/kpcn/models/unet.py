@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import torch
 
-from ..exposure import TRAINED_KEYS
 from .base import DETAIL_STAGE, DenoiserModel, check_inputs
 from .kernel_heads import MultiScaleApply, MultiScaleKernels
 from .registry import register_model, register_weights
@@ -219,7 +218,7 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
 register_weights("unet_kpcn", "wide64n", "unet_wide64n.safetensors", default=True,
-                 config=dict(DETAIL_STAGE, detail_eps=0.001, exposure_range=TRAINED_KEYS),
+                 config=dict(DETAIL_STAGE, detail_eps=0.001),
                  description="unet_kpcn:wide64e (the same network, 98 k multiply-adds per pixel, and its detail stage) "
                              "fine-tuned in two runs of 600 steps on the CPU on 89 fresh procedural 256x256 scenes "
                              "with the references as targets at every spp (no distillation from itself above 32 spp, "
