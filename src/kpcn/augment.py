@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .exposure import frame_key
 from .inputs import InputSpec, get_input_spec
 
 __all__ = ["Augmentation", "augment_patch", "undo_flips", "augment_batch", "batch_at_exposure", "exposure_batch"]
@@ -205,8 +206,6 @@ def exposure_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: tor
     """Each patch, with probability ``p``, at another exposure: its key (:func:`kpcn.exposure.frame_key` of its
     noisy colour) moved to a log-uniform draw in ``key_range``, the range the model is to be used in
     (:attr:`kpcn.models.DenoiserModel.exposure_range`); the others, and black patches, as they are."""
-    from .exposure import frame_key
-
     color = batch["noisy_color"]
     n = color.shape[0]
     pick = torch.rand(n, generator=g) < p
