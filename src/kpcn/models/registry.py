@@ -107,12 +107,11 @@ def register_weights(model: str, tag: str, filename: str, description: str = "",
         ValueError: ``config`` names a field the model's config does not have.
     """
     entry_model = _MODELS.get(model)
-    if (exposure_range is not None and entry_model is not None and entry_model.config is not None
-            and "exposure_range" in {f.name for f in dataclasses.fields(entry_model.config)}):
-        config = {"exposure_range": tuple(exposure_range), **(config or {})}
-    if config and entry_model is not None and entry_model.config is not None:
+    if entry_model is not None and entry_model.config is not None:
         known = {f.name for f in dataclasses.fields(entry_model.config)}
-        unknown = sorted(set(config) - known)
+        if exposure_range is not None and "exposure_range" in known:
+            config = {"exposure_range": tuple(exposure_range), **(config or {})}
+        unknown = sorted(set(config or ()) - known)
         if unknown:
             raise ValueError(f"register_weights({model}:{tag}): config fields {unknown} are not fields of "
                              f"{entry_model.config.__name__}")
