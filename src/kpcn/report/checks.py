@@ -72,18 +72,17 @@ EXPOSURE_FIELDS = ("scene", "method", "spp", "exposure", "relmse", "psnr", "ssim
 
 
 def evaluate_exposure(sr: SceneRenders, methods: Sequence[Method], spp: int, factors: Sequence[float],
-                      rows: Sequence[dict], floor_factor: float = 3.0) -> list[dict]:
+                      rows: Sequence[dict]) -> list[dict]:
     """One row per method and factor: the scene's ``spp`` input with every radiance layer × the factor (its
     variances × its square; :func:`kpcn.exposure.scale_layers`), denoised, the output divided by the factor and
-    compared with the reference; ``own_*``: the same method's row at the frame's own exposure (from ``rows``);
-    ``input_relmse``: the noisy input's."""
+    compared with the reference; ``own_*``: the same method's row at the frame's own exposure, ``input_relmse``
+    and ``ref_limited`` the noisy input's (its ``mc`` row): ``rows`` are :func:`evaluate_scene`'s for the scene."""
     frame = sr.inputs.get(spp)
     if frame is None or not factors:
         return []
     ref = sr.reference["color"]
     own = {r["method"]: r for r in rows if r["scene"] == sr.label and r["spp"] == spp}
-    inp = own[MC]["relmse"] if MC in own else all_metrics(frame["color"], ref)["relmse"]
-    floor = reference_floor(sr.reference)
+    inp, ref_limited = own[MC]["relmse"], bool(own[MC]["ref_limited"])
     out = []
     for f in factors:
         scaled = Frame(scale_layers(frame.layers, float(f)), dict(frame.meta), frame.path)
@@ -94,8 +93,7 @@ def evaluate_exposure(sr: SceneRenders, methods: Sequence[Method], spp: int, fac
             out.append({"scene": sr.label, "method": m.name, "spp": spp, "exposure": float(f),
                         **{k: met[k] for k in ("relmse", "psnr", "ssim")},
                         **{f"own_{k}": base.get(k, float("nan")) for k in ("relmse", "psnr", "ssim")},
-                        "input_relmse": inp, "worse_than_input": met["relmse"] > inp,
-                        "ref_limited": is_ref_limited(inp, floor, floor_factor)})
+                        "input_relmse": inp, "worse_than_input": met["relmse"] > inp, "ref_limited": ref_limited})
     return out
 
 
@@ -145,24 +143,20 @@ def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = (), expos
     Each item: ``scene, spp, method, relmse, input_relmse, ratio, converged, ref_limited`` (and ``exposure``,
     the factor, for a frame at another exposure).
     """
+    def item(r: dict, input_relmse: float, ref_limited, converged: bool = False, **extra) -> dict:
+        return {"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
+                "input_relmse": input_relmse, "ratio": r["relmse"] / max(input_relmse, 1e-30),
+                "converged": converged, "ref_limited": bool(ref_limited), **extra}
+
     inputs = {(r["scene"], r["spp"]): r for r in rows if r["method"] == MC}
     out = []
     for r in rows:
         inp = inputs.get((r["scene"], r["spp"]))
         if r["method"] != MC and inp is not None and r["relmse"] > inp["relmse"]:
-            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
-                        "input_relmse": inp["relmse"], "ratio": r["relmse"] / max(inp["relmse"], 1e-30),
-                        "converged": False, "ref_limited": bool(inp.get("ref_limited"))})
-    for r in converged:
-        if r["worse_than_input"]:
-            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
-                        "input_relmse": r["input_relmse"], "ratio": r["relmse"] / max(r["input_relmse"], 1e-30),
-                        "converged": True, "ref_limited": bool(r["ref_limited"])})
-    for r in exposure:
-        if r["worse_than_input"]:
-            out.append({"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
-                        "input_relmse": r["input_relmse"], "ratio": r["relmse"] / max(r["input_relmse"], 1e-30),
-                        "converged": False, "ref_limited": bool(r["ref_limited"]), "exposure": r["exposure"]})
+            out.append(item(r, inp["relmse"], inp.get("ref_limited")))
+    out += [item(r, r["input_relmse"], r["ref_limited"], converged=True) for r in converged if r["worse_than_input"]]
+    out += [item(r, r["input_relmse"], r["ref_limited"], exposure=r["exposure"])
+            for r in exposure if r["worse_than_input"]]
     return out
 
 

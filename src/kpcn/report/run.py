@@ -167,7 +167,7 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp, floor_factor=cfg.floor_factor)
         rows += r
         converged += evaluate_converged(sr, methods, cfg.floor_factor)
-        exposure += evaluate_exposure(sr, methods, exposure_spp, cfg.exposure_factors, r, cfg.floor_factor)
+        exposure += evaluate_exposure(sr, methods, exposure_spp, cfg.exposure_factors, r)
         images[sr.label] = imgs
         say(f"evaluated {sr.label}")
 
