@@ -131,6 +131,11 @@ def test_exposure_augmentation_needs_keys_and_a_split_spec(tiny_dataset, tmp_pat
     with pytest.raises(ConfigError, match="exposure_range"):  # a KPCN declares no range of its own
         train(tiny_cfg(tiny_dataset, tmp_path, name="e1", stage1_steps=1, stage2_steps=0, exposure_augment=0.5),
               progress=False)
+    can = tiny_cfg(tiny_dataset, tmp_path, name="e2", stage1_steps=1, stage2_steps=0, exposure_augment=0.5,
+                   exposure_range=(0.03, 1.0))
+    can.model["input_spec"] = "color_albedo_normal"  # one colour branch: its stored features are not rescaled
+    with pytest.raises(ConfigError, match="exposure_augment: .*split input spec"):
+        train(can, progress=False)
     with pytest.raises(ConfigError, match="exposure_augment"):
         load_config(RunConfig, None, ["train.exposure_augment=1.5"])
     with pytest.raises(ConfigError, match="exposure_range"):

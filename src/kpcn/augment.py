@@ -37,7 +37,8 @@ import torch
 from .exposure import frame_key
 from .inputs import InputSpec, get_input_spec
 
-__all__ = ["Augmentation", "augment_patch", "undo_flips", "augment_batch", "batch_at_exposure", "exposure_batch"]
+__all__ = ["Augmentation", "augment_patch", "undo_flips", "augment_batch", "batch_at_exposure", "exposure_batch",
+           "check_exposure_spec"]
 
 PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
 
@@ -178,14 +179,21 @@ def _branch_at_exposure(x: torch.Tensor, s: torch.Tensor, spec: InputSpec, log: 
     return x
 
 
+def check_exposure_spec(spec: InputSpec | str) -> InputSpec:
+    """``spec`` (resolved) if batches of it can be shown at another exposure (a diffuse/specular split); a
+    ``ValueError`` naming it otherwise."""
+    spec = get_input_spec(spec)
+    if set(spec.branches) != {"diffuse", "specular"}:
+        raise ValueError(f"exposure augmentation needs a diffuse/specular split input spec, not {spec.name!r}")
+    return spec
+
+
 def batch_at_exposure(batch: dict[str, torch.Tensor], spec: InputSpec | str, s: torch.Tensor
                       ) -> dict[str, torch.Tensor]:
     """A training batch of a split input spec as the same patches rendered at ``s`` ``(B,)`` times the exposure:
     the branches' features (:func:`_branch_at_exposure`), the targets in each branch's space, ``noisy_color`` and
     ``y_color``; albedo, normal and labels unchanged."""
-    spec = get_input_spec(spec)
-    if set(spec.branches) != {"diffuse", "specular"}:
-        raise ValueError(f"exposure augmentation needs a diffuse/specular split input spec, not {spec.name!r}")
+    spec = check_exposure_spec(spec)
     s4 = s.to(torch.float32).reshape(-1, 1, 1, 1)
     out = dict(batch)
     for b in spec.branches:

@@ -73,7 +73,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .augment import augment_batch, exposure_batch
+from .augment import augment_batch, check_exposure_spec, exposure_batch
 from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
 from .data import FrameDataset, PatchDataset
@@ -145,8 +145,10 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         if exposure_keys is None:
             raise ConfigError("train.exposure_augment: give train.exposure_range (the keys to draw from) or a model "
                               "with an exposure_range")
-        if set(spec.branches) != {"diffuse", "specular"}:
-            raise ConfigError(f"train.exposure_augment: needs a diffuse/specular split input spec, not {spec.name}")
+        try:
+            check_exposure_spec(spec)
+        except ValueError as exc:
+            raise ConfigError(f"train.exposure_augment: {exc}") from None
     if cfg.train.detail_stage and model.detail_regression is None:  # a stage implies a spec with the normal
         raise ConfigError(f"train.detail_stage: the model has no detail stage to train for (set model.detail_radius "
                           f"> 0 with an input spec that reads the normal; {spec.name} reads {spec.layers})")
