@@ -124,8 +124,7 @@ def _dataset_keys(roots: Sequence[str]) -> None:
     for root in roots:
         for path in sorted(Path(root).rglob("input*.exr")):
             frame = read_exr(path, require=())
-            color = frame["color"] if "color" in frame else frame["diffuse"] + frame["specular"]
-            keys.setdefault(int(frame.meta.get("spp", 0) or 0), []).append(frame_key(color))
+            keys.setdefault(int(frame.meta.get("spp", 0) or 0), []).append(frame_key(frame.beauty()))
     if not keys:
         raise SystemExit(f"no input*.exr frames under {', '.join(roots)}")
     pct = (0, 2, 10, 50, 90, 98, 100)

@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from ..io import Frame
+from .frames import as_frame, check_output, default_model, write_output
 from .results import DenoiseResult
 from .weights import load_model, resolve_device
 
@@ -67,15 +68,14 @@ def ensemble_result(src, model=None, out_path=None, *, views: int, device="auto"
     as a :class:`DenoiseResult` whose stats are the first view's with the summed ``seconds`` (``stats.views``
     says how many). ``model``, ``out_path``, ``device``, ``trust_pickle`` and ``kw`` as
     :func:`~kpcn.inference.denoise_result` takes them; the output file is written once, from the mean."""
-    # the pipeline imports this module
-    from .pipeline import _as_frame, _check_output, _default_model, _write_output, denoise_result
+    from .pipeline import denoise_result  # the pipeline imports this module
 
     n = check_views(views)
-    _check_output(out_path, src)  # refused before any work, as a single view is
-    frame, read_s = _as_frame(src, ())
+    check_output(out_path, src)  # refused before any work, as a single view is
+    frame, read_s = as_frame(src, ())
     dev = resolve_device(device)
     if model is None:
-        model = _default_model(frame, stacklevel=3)
+        model = default_model(frame, stacklevel=3)
     net = load_model(model, dev, trust_pickle=trust_pickle)  # once for every view
     color, layers, first, seconds, detail_s = None, {}, None, 0.0, 0.0
     for k in range(n):
@@ -96,7 +96,7 @@ def ensemble_result(src, model=None, out_path=None, *, views: int, device="auto"
     result = DenoiseResult(color * scale, stats, first.model_name, layers={k: v * scale for k, v in layers.items()})
     if out_path is not None:
         t0 = time.perf_counter()
-        _write_output(out_path, result.color, frame, result)
+        write_output(out_path, result.color, frame, result)
         stats.write_seconds = time.perf_counter() - t0
         result.out_path = os.fspath(out_path)
     return result

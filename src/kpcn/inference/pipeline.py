@@ -39,117 +39,28 @@ import contextlib
 import os
 import time
 import warnings
-from typing import Mapping
 
 import numpy as np
 import torch
 
 from ..exposure import exposure_scale, frame_key, scale_layers
 from ..features import frame_to_tensors
-from ..io import Frame, read_exr, sanitize_layers, write_exr
+from ..io import Frame
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .detail import refine_detail
 from .ensemble import check_views, ensemble_result
-from .paths import check_not_input, check_output_path
+from .frames import as_frame, check_output, color_variance, default_model, validate, write_output
 from .heap import reuse_heap
 from .precision import compute_dtype, resolve_precision
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
 from .rows import denoise_rows, supports_rows
 from .tiling import auto_tile, plan_tiles, tile_size
-from .weights import choose_default, describe, load_model, resolve_device
+from .weights import describe, load_model, resolve_device
 
 __all__ = ["denoise", "denoise_result", "DenoiseResult", "DenoiseStats", "PASSTHROUGH_REL_STD", "peak_rss_mb"]
 
 #: a no-hit tile is passed through when every pixel's standard error is at most this fraction of its colour
 PASSTHROUGH_REL_STD = 1e-3
-
-_THREE_CHANNEL = ("color", "diffuse", "specular", "albedo", "normal")
-
-
-def _source_path(src) -> str | None:
-    """The file a denoise input came from: the path given, or the file a :class:`Frame` was read from."""
-    if isinstance(src, (str, os.PathLike)):
-        return os.fspath(src)
-    if isinstance(src, Frame) and src.path:
-        return os.fspath(src.path)
-    return None
-
-
-def _check_output(out_path, src) -> None:
-    """Refuse ``out_path`` (None: nothing to check) when it is a folder, lies under a file, or is the input ``src``
-    under any spelling (:mod:`.paths`)."""
-    if out_path is None:
-        return
-    check_output_path(out_path)
-    source = _source_path(src)
-    if source is not None and os.path.exists(source):  # a missing input is the reader's error
-        check_not_input(out_path, source)
-
-
-def _default_model(frame: Frame, stacklevel: int):
-    """The shipped model for the layers ``frame`` has, with a warning (at the caller's ``stacklevel``) where it is
-    not the default."""
-    model, note = choose_default(frame.layers)
-    if note:
-        warnings.warn(f"{frame.path or 'frame'}: {note}", UserWarning, stacklevel=stacklevel + 1)
-    return model
-
-
-def _as_frame(src, layers) -> tuple[Frame, float]:
-    """A sanitised frame with ``layers``, and the seconds spent reading it."""
-    t0 = time.perf_counter()
-    if isinstance(src, (str, os.PathLike)):
-        frame = read_exr(src, require=layers)
-        return frame, time.perf_counter() - t0
-    if isinstance(src, Frame):
-        frame = Frame(dict(src.layers), dict(src.meta), src.path, dict(src.nonfinite))
-    elif isinstance(src, Mapping):
-        frame = Frame({k: np.asarray(v) for k, v in src.items()})
-    else:
-        raise TypeError(f"denoise: expected an EXR path, a Frame or a dict of layers, got {type(src).__name__}")
-    frame.require(layers)
-    for name, arr in list(frame.layers.items()):
-        a = np.asarray(arr)
-        if a.ndim == 2:
-            a = a[..., None]
-        frame.layers[name] = a if a.dtype == np.float32 else a.astype(np.float32)
-    counts = sanitize_layers(frame.layers)  # on the copied dict: the caller's arrays are untouched
-    if counts:
-        frame.nonfinite = {**frame.nonfinite, **counts}
-        warnings.warn(
-            f"{frame.path or 'frame'}: replaced non-finite values ({', '.join(f'{k}: {v}' for k, v in counts.items())})",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-    return frame, time.perf_counter() - t0
-
-
-def _validate(frame: Frame, layers) -> tuple[int, int]:
-    h, w = frame[layers[0]].shape[:2]
-    extra = tuple(n for n in ("color", "colorVariance") if n in frame and n not in layers)
-    for name in tuple(layers) + extra:
-        a = frame[name]
-        if a.ndim != 3 or a.shape[:2] != (h, w):
-            raise ValueError(f"{frame.path or 'frame'}: layer {name!r} has shape {a.shape}, expected ({h}, {w}, C)")
-        if name in _THREE_CHANNEL and a.shape[2] != 3:
-            raise ValueError(f"{frame.path or 'frame'}: layer {name!r} must have 3 channels, got {a.shape[2]}")
-    if h == 0 or w == 0:
-        raise ValueError(f"{frame.path or 'frame'}: empty image ({w}x{h})")
-    return h, w
-
-
-def _noisy_color(frame: Frame) -> np.ndarray:
-    if "color" in frame and frame["color"].shape[2] == 3:
-        return frame["color"]
-    return frame["diffuse"] + frame["specular"]
-
-
-def _color_variance(frame: Frame) -> np.ndarray | None:
-    if "colorVariance" in frame:
-        return frame["colorVariance"]
-    if "diffuseVariance" in frame and "specularVariance" in frame:
-        return frame["diffuseVariance"] + frame["specularVariance"]
-    return None
 
 
 def _autocast(half: bool):
@@ -179,22 +90,22 @@ def denoise_result(
                                precision=precision)
     if tile != "auto" and tile is not None and (isinstance(tile, (bool, str)) or int(tile) != tile):
         raise ValueError(f"denoise: tile must be an integer (<= 0 or None: whole frame) or 'auto', got {tile!r}")
-    _check_output(out_path, exr_path_or_frame)  # refused before any work, not after it
+    check_output(out_path, exr_path_or_frame)  # refused before any work, not after it
     dev = resolve_device(device)
     read_s = 0.0
     frame = None
     if model is None:  # the shipped model for the layers this file has
-        frame, read_s = _as_frame(exr_path_or_frame, ())
-        model = _default_model(frame, stacklevel=2)
+        frame, read_s = as_frame(exr_path_or_frame, ())
+        model = default_model(frame, stacklevel=2)
     net = load_model(model, dev, trust_pickle=trust_pickle)
     dtype = resolve_precision(precision, net, dev)
     spec = net.input_spec
     if frame is None:
-        frame, read_s = _as_frame(exr_path_or_frame, spec.layers)
+        frame, read_s = as_frame(exr_path_or_frame, spec.layers)
     else:  # already read and sanitised above (our own copy): only the layers to check
         frame.require(spec.layers)
     frame = spec.select(frame)  # e.g. OIDN's albedo for a colour + albedo + normal model, where the file has it
-    h, w = _validate(frame, spec.layers)
+    h, w = validate(frame, spec.layers)
     plans = plan_aovs(frame, list(layers), spec, aov_branch) if layers else []
     if plans and not net.zero_preserving:
         raise ValueError(f"denoise: layers=... needs a kernel-predicting model; {describe(net)} predicts no kernels")
@@ -216,7 +127,7 @@ def denoise_result(
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
     # a frame far brighter or darker than the model's training frames is denoised at its range's centre
-    key = frame_key(_noisy_color(frame)) if net.exposure_range is not None else None
+    key = frame_key(frame.beauty()) if net.exposure_range is not None else None
     scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
     if scale != 1.0:
         frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
@@ -231,8 +142,8 @@ def denoise_result(
     frame_value = frame_value.to(dev) if frame_value is not None else None
     if spec.frame_stat is not None and frame_value is not None:
         stats.noise_precision = float(frame_value.reshape(-1)[0])
-    color_in = _noisy_color(frame)
-    var_in = _color_variance(frame) if skip and "depth" in frame else None
+    color_in = frame.beauty()
+    var_in = color_variance(frame) if skip and "depth" in frame else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
     stats.precision = str(dtype).removeprefix("torch.")
@@ -310,27 +221,10 @@ def denoise_result(
     result = DenoiseResult(out, stats, describe(net), layers=aov_out)
     if out_path is not None:
         t1 = time.perf_counter()
-        _write_output(out_path, out, frame, result)
+        write_output(out_path, out, frame, result)
         stats.write_seconds = time.perf_counter() - t1
         result.out_path = os.fspath(out_path)
     return result
-
-
-def _write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResult) -> None:
-    layers = {"color": color, **result.layers}
-    for name in ("albedo", "normal", "depth"):
-        if name in frame:
-            layers[name] = frame[name]
-    meta = {k: v for k, v in frame.meta.items()
-            if k in ("spp", "seed", "scene", "renderTimeSeconds", "dataWindow", "displayWindow")}
-    meta.update(
-        {
-            "source": os.path.abspath(frame.path) if frame.path else "<in-memory frame>",
-            "denoiser": result.model_name,
-            "denoiseSeconds": float(result.stats.seconds),
-        }
-    )
-    write_exr(out_path, layers, meta)
 
 
 def denoise(

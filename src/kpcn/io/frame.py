@@ -97,6 +97,13 @@ class Frame:
         s = self.meta.get("spp")
         return int(s) if s is not None else None
 
+    def beauty(self) -> np.ndarray:
+        """The noisy colour ``(H, W, 3)``: the ``color`` layer, or ``diffuse + specular`` where the frame has only
+        the split (a missing one is named by :class:`MissingLayerError`)."""
+        if "color" in self.layers and self.layers["color"].shape[2] == 3:
+            return self.layers["color"]
+        return self["diffuse"] + self["specular"]
+
     def require(self, names: Iterable[str]) -> None:
         """Raise :class:`MissingLayerError` unless every layer in ``names`` is present."""
         missing = [n for n in names if n not in self.layers]
