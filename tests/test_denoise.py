@@ -586,3 +586,32 @@ def test_bench_finds_the_checkouts_configs_from_any_folder(tmp_path, monkeypatch
     name, kw, origin = _denoise_model_spec("unet_wide64h")
     want = Path(__file__).resolve().parents[1] / "configs" / "unet_wide64h.yaml"
     assert name == "unet_kpcn" and kw["widths"] == [64, 96, 128, 160] and Path(origin) == want
+
+
+def test_a_frame_whose_spp_varies_is_denoised_region_by_region_and_keeps_its_count(tmp_path, render):
+    """A real frame made of a 4-spp render in smooth regions and a 64-spp one elsewhere (what an adaptive sampler
+    writes, with its sampleCount layer): the default leaves each region closer to the reference than its noisy
+    pixels, and the output file keeps the count."""
+    from kpcn.io import SAMPLE_COUNT
+    from kpcn.metrics import relmse
+    from kpcn.render import mix_frames
+    from kpcn.sample_maps import region_mask
+
+    res = (48, 48)
+    lo, hi = render("test:glossy", spp=4, resolution=res), render("test:glossy", spp=64, seed=3, resolution=res)
+    ref = render("test:glossy", spp=512, seed=2, role=1, resolution=res)["color"]
+    low = region_mask(lo.shape, np.random.default_rng(0), cell=8, quantile=0.5)
+    src = tmp_path / "mixed.exr"
+    mixed = mix_frames(lo, hi, low)
+    write_exr(src, mixed.layers, mixed.meta)
+    out = tmp_path / "mixed_denoised.exr"
+    color = dn.denoise(str(src), out_path=out)
+    for where in (low, ~low):
+        assert relmse(color[where], ref[where]) < 0.7 * relmse(mixed["color"][where], ref[where])
+    written = read_exr(out)
+    np.testing.assert_array_equal(written[SAMPLE_COUNT], mixed[SAMPLE_COUNT])
+    assert set(np.unique(written[SAMPLE_COUNT])) == {4.0, 64.0}
+    holes = mixed.layers[SAMPLE_COUNT].copy()
+    holes[:2, :3] = 0  # pixels an adaptive sampler gave no samples
+    with pytest.warns(UserWarning, match="6 pixel.*have no samples"):
+        dn.denoise(Frame({**mixed.layers, SAMPLE_COUNT: holes}, mixed.meta))

@@ -258,3 +258,37 @@ def test_merged_frames_are_the_union_of_their_samples():
     np.testing.assert_allclose(merged["depth"], (7 * 7 + 5 * 5) / 12)  # a layer without variance: the weighted mean
     with pytest.raises(ValueError, match="different layers"):
         merge_frames(frame(samples[:7]), Frame({"color": samples[0].astype(np.float32)}, {"spp": 1}))
+
+
+def test_frames_whose_spp_varies_per_pixel_merge_pixel_by_pixel():
+    """Pure maths: frames of samples whose count varies per pixel (a sample-count layer, as an adaptive sampler
+    writes, here made by mix_frames) merge into the mean and variance of all each pixel's samples."""
+    from kpcn.io import SAMPLE_COUNT, Frame
+    from kpcn.render import merge_frames, mix_frames
+
+    rng = np.random.default_rng(1)
+    samples = rng.lognormal(0.0, 1.5, size=(40, 4, 5, 3))
+    mask = rng.random((4, 5)) < 0.5
+
+    def frame(s):
+        n = len(s)
+        return Frame({"color": s.mean(0).astype(np.float32),
+                      "colorVariance": (s.var(0, ddof=1) / n).astype(np.float32)}, {"spp": n, "renderTimeSeconds": 1.0})
+
+    # first 4 samples where mask, 16 elsewhere; then 6 more where mask, 20 more elsewhere
+    first = mix_frames(frame(samples[:4]), frame(samples[:16]), mask)
+    assert np.array_equal(first.sample_count(), np.where(mask, 4.0, 16.0)) and SAMPLE_COUNT in first
+    assert first.spp == round(float(np.where(mask, 4, 16).mean())) and "renderTimeSeconds" not in first.meta
+    more = mix_frames(frame(samples[4:10]), frame(samples[16:36]), mask)
+    both = merge_frames(first, more)
+    assert np.array_equal(both.sample_count(), np.where(mask, 10.0, 36.0))
+    for whole, where in ((frame(samples[:10]), mask), (frame(samples[:36]), ~mask)):
+        for name in ("color", "colorVariance"):
+            np.testing.assert_allclose(both[name][where], whole[name][where], rtol=1e-4, err_msg=name)
+    # a uniform frame merges with a varying one: its spp is every pixel's count
+    plus = merge_frames(first, frame(samples[36:]))
+    assert np.array_equal(plus.sample_count(), np.where(mask, 8.0, 20.0))
+    with pytest.raises(ValueError, match="mask is"):
+        mix_frames(frame(samples[:4]), frame(samples[:16]), mask[:3])
+    with pytest.raises(ValueError, match="neither a sampleCount layer nor an spp"):
+        merge_frames(Frame(dict(frame(samples[:4]).layers)), frame(samples[:4]))

@@ -11,7 +11,7 @@ from typing import Mapping
 
 import numpy as np
 
-from ..io import Frame, read_exr, sanitize_layers, write_exr
+from ..io import SAMPLE_COUNT, Frame, read_exr, sanitize_layers, write_exr
 from .paths import check_not_input, check_output_path
 from .results import DenoiseResult
 from .weights import choose_default
@@ -82,10 +82,11 @@ def as_frame(src, layers) -> tuple[Frame, float]:
 
 
 def validate(frame: Frame, layers) -> tuple[int, int]:
-    """``(H, W)`` of ``frame``, after checking that ``layers`` (and colour and its variance, where present) share it
-    and that the colour-like ones have 3 channels (a clear ``ValueError`` naming the layer otherwise)."""
+    """``(H, W)`` of ``frame``, after checking that ``layers`` (and colour, its variance and the sample count, where
+    present) share it and that the colour-like ones have 3 channels (a clear ``ValueError`` naming the layer
+    otherwise). Pixels whose sample count is below 1 (no samples: nothing to denoise) are named in a warning."""
     h, w = frame[layers[0]].shape[:2]
-    extra = tuple(n for n in ("color", "colorVariance") if n in frame and n not in layers)
+    extra = tuple(n for n in ("color", "colorVariance", SAMPLE_COUNT) if n in frame and n not in layers)
     for name in tuple(layers) + extra:
         a = frame[name]
         if a.ndim != 3 or a.shape[:2] != (h, w):
@@ -94,6 +95,11 @@ def validate(frame: Frame, layers) -> tuple[int, int]:
             raise ValueError(f"{frame.path or 'frame'}: layer {name!r} must have 3 channels, got {a.shape[2]}")
     if h == 0 or w == 0:
         raise ValueError(f"{frame.path or 'frame'}: empty image ({w}x{h})")
+    if SAMPLE_COUNT in frame:
+        empty = int((frame[SAMPLE_COUNT] < 1).sum())
+        if empty:
+            warnings.warn(f"{frame.path or 'frame'}: {empty} pixel(s) have no samples ({SAMPLE_COUNT} < 1): the "
+                          f"denoiser takes their colour and variances for a pixel known exactly", stacklevel=3)
     return h, w
 
 
@@ -109,9 +115,10 @@ def color_variance(frame: Frame) -> np.ndarray | None:
 
 def write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResult) -> None:
     """Write the denoised ``color`` and ``result``'s layers to ``out_path`` (atomically), with the input's albedo,
-    normal and depth and a header that names the source, the model and the seconds."""
+    normal, depth and sample count (:data:`~kpcn.io.SAMPLE_COUNT`) and a header that names the source, the model and
+    the seconds."""
     layers = {"color": color, **result.layers}
-    for name in ("albedo", "normal", "depth"):
+    for name in ("albedo", "normal", "depth", SAMPLE_COUNT):
         if name in frame:
             layers[name] = frame[name]
     meta = {k: v for k, v in frame.meta.items()

@@ -28,7 +28,8 @@ the tests reach here, are re-exported; the other helpers live in their modules.
 from __future__ import annotations
 
 from .atomic import STALE_TEMP_AGE_S, _host_tag, atomic_write, remove_stale_temporaries
-from .frame import BASE_LAYERS, FEATURE_LAYERS, RGB_LAYERS, WINDOW_KEYS, ExrError, Frame, MissingLayerError
+from .frame import (BASE_LAYERS, FEATURE_LAYERS, RGB_LAYERS, SAMPLE_COUNT, WINDOW_KEYS, ExrError, Frame,
+                    MissingLayerError)
 from .names import _channel_names
 from .read import read_exr
 from .sanitize import sanitize_layers
@@ -45,6 +46,7 @@ __all__ = [
     "STALE_TEMP_AGE_S",
     "BASE_LAYERS",
     "FEATURE_LAYERS",
+    "SAMPLE_COUNT",
 ]
 
 # Importable from kpcn.io without being in ``__all__``, as before the split: used by

@@ -11,6 +11,9 @@ RGB_LAYERS = ("color", "diffuse", "specular", "albedo", "normal")
 #: The layers a KPCN/DPCN model reads (variances are listed separately).
 BASE_LAYERS = ("color", "diffuse", "specular", "albedo", "normal", "depth")
 FEATURE_LAYERS = BASE_LAYERS + tuple(f"{n}Variance" for n in BASE_LAYERS)
+#: The per-pixel sample count (one channel): a frame whose spp varies from pixel to pixel (an adaptive sampler's,
+#: or :func:`kpcn.render.mix_frames`'s) says how many samples each pixel's mean and variances are of.
+SAMPLE_COUNT = "sampleCount"
 #: ``frame.meta`` keys of the EXR windows, each ``((xmin, ymin), (xmax, ymax))`` in pixels (inclusive)
 WINDOW_KEYS = ("dataWindow", "displayWindow")
 
@@ -96,6 +99,13 @@ class Frame:
     def spp(self) -> int | None:
         s = self.meta.get("spp")
         return int(s) if s is not None else None
+
+    def sample_count(self) -> np.ndarray | None:
+        """``(H, W)`` float64: the samples of each pixel, from the :data:`SAMPLE_COUNT` layer, else the header's
+        ``spp`` everywhere; None where the frame says neither."""
+        if SAMPLE_COUNT in self.layers:
+            return self.layers[SAMPLE_COUNT][..., 0].astype(np.float64)
+        return None if self.spp is None else np.full(self.shape, float(self.spp))
 
     def beauty(self) -> np.ndarray:
         """The noisy colour ``(H, W, 3)``: the ``color`` layer, or ``diffuse + specular`` where the frame has only

@@ -9,7 +9,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..integrator import ALBEDO_REVISION, MOMENT2, NORMAL_REVISION, aov_layout
-from ..io import Frame, write_exr
+from ..io import SAMPLE_COUNT, Frame, write_exr
 from .scene import ensure_variant, load_scene
 
 
@@ -121,25 +121,46 @@ def n_passes(spp: int, pass_spp: int = 256) -> int:
     return -(-int(spp) // int(pass_spp))
 
 
+def _counts(frame: Frame, who: str) -> np.ndarray:
+    n = frame.sample_count()
+    if n is None:
+        raise ValueError(f"{who}: a frame gives neither a {SAMPLE_COUNT} layer nor an spp in its header")
+    return n[..., None]
+
+
+def _same_view(a: Frame, b: Frame, who: str) -> list[str]:
+    names = sorted(set(a.layers) - {SAMPLE_COUNT})
+    if names != sorted(set(b.layers) - {SAMPLE_COUNT}):
+        raise ValueError(f"frames to {who} have different layers: {sorted(a.layers)} and {sorted(b.layers)}")
+    if a.shape != b.shape:
+        raise ValueError(f"frames to {who} have different sizes: {a.shape} and {b.shape}")
+    return names
+
+
+def _mean_spp_meta(meta: dict, n: np.ndarray, **more) -> dict:
+    """``meta`` with ``spp`` the mean samples per pixel (rounded) of the counts ``n``."""
+    return {**meta, "spp": int(max(round(float(n.mean())), 1)), **more}
+
+
 def merge_frames(a: Frame, b: Frame) -> Frame:
     """One frame from two renders of the same view with independent samples.
 
-    Every layer is the spp-weighted mean; each ``<layer>Variance`` (variance of the pixel mean) is recomputed from
+    Every layer is the sample-weighted mean; each ``<layer>Variance`` (variance of the pixel mean) is recomputed from
     the two parts' per-sample second moments, as :func:`render_frame` computes it from the passes it adds up, so a
     frame of passes ``0 … k-1`` merged with passes ``k … n-1`` is the frame of passes ``0 … n-1`` (to float32
-    rounding). Meta: ``a``'s, with ``spp`` the sum and ``renderTimeSeconds`` the sum of both.
+    rounding). The weights are each pixel's samples (:meth:`~kpcn.io.Frame.sample_count`: a frame's
+    :data:`~kpcn.io.SAMPLE_COUNT` layer, else its ``spp``), so frames whose spp varies per pixel merge pixel by
+    pixel; the result has a :data:`~kpcn.io.SAMPLE_COUNT` layer where either part had one. Meta: ``a``'s, with
+    ``spp`` the sum (the mean per pixel, rounded, with a count layer) and ``renderTimeSeconds`` the sum of both.
 
     Raises:
-        ValueError: the frames' layers or sizes differ.
+        ValueError: the frames' layers or sizes differ, or a frame gives no sample count.
     """
-    if sorted(a.layers) != sorted(b.layers):
-        raise ValueError(f"frames to merge have different layers: {sorted(a.layers)} and {sorted(b.layers)}")
-    if a.shape != b.shape:
-        raise ValueError(f"frames to merge have different sizes: {a.shape} and {b.shape}")
-    na, nb = int(a.spp), int(b.spp)
+    names = _same_view(a, b, "merge")
+    na, nb = _counts(a, "merge_frames"), _counts(b, "merge_frames")
     n = na + nb
     out: dict[str, np.ndarray] = {}
-    for name in a.layers:
+    for name in names:
         if name.endswith("Variance"):
             continue
         ma, mb = a[name].astype(np.float64), b[name].astype(np.float64)
@@ -150,10 +171,35 @@ def merge_frames(a: Frame, b: Frame) -> Frame:
             # per-sample second moments back from each part's variance of the mean: var = (m2 - m^2) / (n - 1)
             m2 = (na * (a[vname].astype(np.float64) * (na - 1) + ma**2)
                   + nb * (b[vname].astype(np.float64) * (nb - 1) + mb**2)) / n
-            out[vname] = np.maximum((m2 - m**2) / (n - 1), 0.0).astype(np.float32)
+            out[vname] = np.maximum((m2 - m**2) / np.maximum(n - 1, 1), 0.0).astype(np.float32)
     seconds = float(a.meta.get("renderTimeSeconds", 0.0)) + float(b.meta.get("renderTimeSeconds", 0.0))
-    meta = {**a.meta, "spp": n, "renderTimeSeconds": seconds}
-    return Frame(out, meta)
+    if SAMPLE_COUNT in a.layers or SAMPLE_COUNT in b.layers:
+        out[SAMPLE_COUNT] = n.astype(np.float32)
+        return Frame(out, _mean_spp_meta(a.meta, n, renderTimeSeconds=seconds))
+    return Frame(out, {**a.meta, "spp": int(a.spp) + int(b.spp), "renderTimeSeconds": seconds})
+
+
+def mix_frames(a: Frame, b: Frame, mask: np.ndarray) -> Frame:
+    """A frame whose spp varies per pixel: ``a``'s pixels where ``mask`` is True, ``b``'s elsewhere.
+
+    ``a`` and ``b`` are renders of one view (say at 4 and 64 spp); each pixel of the result is still the mean of
+    its own samples, with the variances of that mean, and its :data:`~kpcn.io.SAMPLE_COUNT` layer says how many
+    (what an adaptive sampler writes, made from renders at uniform spp). Meta: ``a``'s, ``spp`` the mean samples per
+    pixel (rounded), ``renderTimeSeconds`` dropped (the samples' time is not known per pixel).
+
+    Raises:
+        ValueError: the frames' layers or sizes differ, ``mask`` is not ``(H, W)``, or a frame gives no count.
+    """
+    names = _same_view(a, b, "mix")
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != a.shape:
+        raise ValueError(f"mix_frames: the mask is {mask.shape}, the frames {a.shape}")
+    m = mask[..., None]
+    out = {k: np.where(m, a[k], b[k]) for k in names}
+    n = np.where(m, _counts(a, "mix_frames"), _counts(b, "mix_frames"))
+    out[SAMPLE_COUNT] = n.astype(np.float32)
+    meta = {k: v for k, v in a.meta.items() if k != "renderTimeSeconds"}
+    return Frame(out, _mean_spp_meta(meta, n))
 
 
 def extend_frame(frame: Frame, scene: Any, spp: int, seed: int = 0, *, role: int = 0, pass_spp: int = 256,
