@@ -152,3 +152,71 @@ def test_exposure_batch_moves_chosen_patches_into_the_range(render):
     with pytest.raises(ValueError, match="split input spec"):
         exposure_batch({"color": batch["noisy_color"], "noisy_color": batch["noisy_color"]}, "color_albedo_normal",
                        torch.Generator().manual_seed(0), 1.0, (lo, hi))
+
+
+# ------------------------------------------------------------------------------------------------ varying spp
+def test_region_mask_is_reproducible_and_splits_the_patch():
+    from kpcn.sample_maps import region_mask
+
+    fractions = []
+    for seed in range(20):
+        m = region_mask((64, 48), np.random.default_rng(seed))
+        assert m.shape == (64, 48) and m.dtype == bool
+        assert np.array_equal(m, region_mask((64, 48), np.random.default_rng(seed)))
+        fractions.append(float(m.mean()))
+    assert 0.15 <= min(fractions) and max(fractions) <= 0.85
+    assert max(fractions) - min(fractions) > 0.2  # the share of the patch varies from mask to mask
+
+
+@pytest.mark.parametrize("spec_name", ["kpcn_split", "split_novar"])
+def test_a_mixed_patch_is_the_patch_of_the_mixed_render(render, spec_name):
+    """Two real renders of one view at 4 and 64 spp, taken per pixel inside / outside a region mask: the mixed
+    patch equals the features of that composite render everywhere but the gradients of normal, albedo and depth
+    on the seam (they keep one render's) and the depth channels (each render's own depth scale, within 2 %); the
+    colour gradients across the seam are the composite's."""
+    from kpcn.augment import mix_patches
+    from kpcn.features import FEATURE_VAR
+    from kpcn.io import Frame
+    from kpcn.sample_maps import region_mask
+
+    spec = get_input_spec(spec_name)
+    lo, hi = render("test:glossy", spp=4, resolution=RES), render("test:glossy", spp=64, seed=3, resolution=RES)
+    ref = render("test:glossy", spp=64, seed=2, role=1, resolution=RES)
+    h, w = lo.shape
+    m = region_mask((h, w), np.random.default_rng(5))[..., None]
+    mask = torch.from_numpy(m[..., 0])[None]
+    mixed = Frame({k: np.where(m, lo[k], hi[k]) for k in lo.layers}, dict(lo.meta))
+    want = {k: v[0] for k, v in _split_batch(mixed, ref, spec).items()}
+    a = {k: v[0] for k, v in _split_batch(lo, ref, spec).items()}
+    b = {k: v[0] for k, v in _split_batch(hi, ref, spec).items()}
+    got = mix_patches(a, b, mask, spec)
+    seam = torch.zeros(h, w, dtype=torch.bool)
+    seam[:, :-1] |= mask[0, :, 1:] != mask[0, :, :-1]
+    seam[:-1, :] |= mask[0, 1:, :] != mask[0, :-1, :]
+    assert 0 < int(seam.sum()) < h * w // 2
+    gbuf = [c for blk in (spec.grad_x, spec.grad_y) for c in range(blk[0] + 3, blk[1])]
+    # depth is normalised by each frame's largest depth, which differs between renders by its anti-aliasing
+    depth = [spec.grad_x[1] - 1, spec.grad_y[1] - 1]
+    depth += [c for c in (FEATURE_VAR.start + 2,) if c in spec.variance_channels]
+    for k, wv in want.items():
+        g = got[k]
+        if k in spec.branches:
+            keep = torch.ones_like(g, dtype=torch.bool)
+            keep[gbuf] = ~seam
+            for c in depth:
+                torch.testing.assert_close(g[c][~seam], wv[c][~seam], rtol=0, atol=0.02 * float(wv[c].abs().max()))
+                keep[c] = False
+            assert not torch.equal(g, a[k]) and not torch.equal(g, b[k])
+            g, wv = g[keep], wv[keep]
+            # the colour gradients across the seam are new values, not either render's
+            c = spec.grad_x[0]
+            assert torch.allclose(got[k][c:c + 3][:, seam], want[k][c:c + 3][:, seam], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(g, wv, rtol=1e-5, atol=1e-6, msg=k)
+
+
+def test_a_spec_with_a_whole_frame_value_is_not_mixed():
+    from kpcn.augment import check_mix_spec
+
+    with pytest.raises(ValueError, match="whole-frame"):
+        check_mix_spec("color_albedo_normal_noise")
+    assert check_mix_spec("kpcn_split").name == "kpcn_split"

@@ -57,3 +57,41 @@ def test_frame_dataset(tiny_dataset):
 def test_missing_manifest_says_how_to_make_one(tmp_path):
     with pytest.raises(FileNotFoundError, match="kpcn.render dataset"):
         read_manifest(tmp_path)
+
+
+def test_spp_mix_takes_each_pixel_from_one_of_two_inputs_of_the_scene(tiny_dataset):
+    """With spp_mix = 1 every patch is made of its own input and an input of the same scene at the other spp (a
+    frame whose spp varies per pixel); a converged pair is never mixed; the same seed gives the same patches."""
+    from kpcn.data import CONVERGED_SPP, FramePair
+
+    pairs = read_manifest(tiny_dataset)
+    pairs.append(FramePair(pairs[0].scene, CONVERGED_SPP, pairs[0].reference_path, pairs[0].reference_path))
+    kw = dict(patch_size=32, patches_per_frame=4, seed=3, sampling="uniform", label_spp=True)
+    plain, mixed = PatchDataset(pairs, **kw), PatchDataset(pairs, spp_mix=1.0, **kw)
+    for i, p in enumerate(pairs):
+        partners = [pairs[j] for j in mixed.partners[i]]
+        if p.spp == CONVERGED_SPP:
+            assert partners == []
+        else:
+            assert len(partners) == 1 and partners[0].reference_path == p.reference_path
+            assert partners[0].spp != p.spp
+    assert np.array_equal(plain.index, mixed.index)
+    both = 0
+    for idx, (f, _, _) in enumerate(mixed.index):
+        own, got = plain[idx], mixed[idx]
+        assert int(got["spp"]) == pairs[f].spp  # the label stays the first input's
+        if pairs[f].spp == CONVERGED_SPP:
+            assert all(torch.equal(got[k], own[k]) for k in own)
+            continue
+        other = PatchDataset([pairs[mixed.partners[f][0]]], **kw)
+        theirs = other._crop(0, *mixed.index[idx][1:])
+        from_own = (got["noisy_color"] == own["noisy_color"]).all(0)
+        from_other = (got["noisy_color"] == theirs["noisy_color"]).all(0)
+        assert bool((from_own | from_other).all())
+        both += bool((from_own & ~from_other).any() and (from_other & ~from_own).any())
+        assert torch.equal(got["y_color"], own["y_color"])  # the same reference
+    assert both >= len(mixed) // 2
+    again = PatchDataset(pairs, spp_mix=1.0, **kw)
+    assert all(torch.equal(again[5][k], mixed[5][k]) for k in mixed[5])
+    with pytest.raises(ValueError, match="spp_mix"):
+        PatchDataset(pairs, spp_mix=1.5, **kw)

@@ -107,16 +107,21 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
 
 
 def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_path):
-    """The rate is a function of the step and the transforms of (seed, step), exposures included: a resumed run
-    repeats the losses."""
+    """The rate is a function of the step and the transforms of (seed, step), exposures and patches mixed across
+    spp included: a resumed run repeats the losses."""
     from kpcn.schedule import lr_at
 
     kw = dict(stage1_steps=4, stage2_steps=3, schedule="onecycle", augment=True, loss="l1_msssim",
               exposure_augment=0.5, exposure_range=(0.03, 1.0))
-    full = train(tiny_cfg(tiny_dataset, tmp_path, name="full", **kw), progress=False)["losses"]
-    cut = tiny_cfg(tiny_dataset, tmp_path, name="cut", **{**kw, "stage1_steps": 4, "stage2_steps": 0})
-    first = train(cut, progress=False)["losses"]
-    rest = train(tiny_cfg(tiny_dataset, tmp_path, name="cut", **kw), resume=True, progress=False)["losses"]
+
+    def cfg(name, **over):
+        c = tiny_cfg(tiny_dataset, tmp_path, name=name, **{**kw, **over})
+        c.data.spp_mix = 0.5
+        return c
+
+    full = train(cfg("full"), progress=False)["losses"]
+    first = train(cfg("cut", stage2_steps=0), progress=False)["losses"]
+    rest = train(cfg("cut"), resume=True, progress=False)["losses"]
     np.testing.assert_allclose(first + rest, full, rtol=1e-5)
     # the schedule: warm-up from lr/25 to the peak, then down to far below it, within each stage
     rates = [lr_at(s, 0, 100, 1e-3, "onecycle", 0.2) for s in range(100)]
@@ -140,6 +145,12 @@ def test_exposure_augmentation_needs_keys_and_a_split_spec(tiny_dataset, tmp_pat
         load_config(RunConfig, None, ["train.exposure_augment=1.5"])
     with pytest.raises(ConfigError, match="exposure_range"):
         load_config(RunConfig, None, ["train.exposure_range=[0.5, 0.1]"])
+    with pytest.raises(ConfigError, match="data.spp_mix"):
+        load_config(RunConfig, None, ["data.spp_mix=2"])
+    noise = tiny_cfg(tiny_dataset, tmp_path, name="e3", stage1_steps=1, stage2_steps=0)
+    noise.model["input_spec"], noise.data.spp_mix = "color_albedo_normal_noise", 0.5
+    with pytest.raises(ConfigError, match="data.spp_mix: .*whole-frame"):
+        train(noise, progress=False)
 
 
 def test_converged_inputs_add_each_training_reference_as_its_own_input(tiny_dataset, tmp_path):

@@ -1,4 +1,5 @@
-"""Training augmentation: flips, transposes and colour-channel permutations of built patches.
+"""Training augmentation: flips, transposes and colour-channel permutations of built patches; other exposures;
+patches whose spp varies from pixel to pixel.
 
 OIDN's training flips, transposes and permutes the colour channels of every
 patch; kpcn does the same, but on the tensors the input spec has already
@@ -38,7 +39,7 @@ from .exposure import frame_key
 from .inputs import InputSpec, get_input_spec
 
 __all__ = ["Augmentation", "augment_patch", "undo_flips", "augment_batch", "batch_at_exposure", "exposure_batch",
-           "check_exposure_spec"]
+           "check_exposure_spec", "mix_patches", "check_mix_spec"]
 
 PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
 
@@ -225,3 +226,50 @@ def exposure_batch(batch: dict[str, torch.Tensor], spec: InputSpec | str, g: tor
         if key > 0:
             s[i] = lo * (hi / lo) ** float(u[i]) / key
     return batch_at_exposure(batch, spec, s) if bool((s != 1).any()) else batch
+
+
+# ------------------------------------------------------------------------------------------------ varying spp
+def check_mix_spec(spec: InputSpec | str) -> InputSpec:
+    """``spec`` if its patches can be composited pixel by pixel (:func:`mix_patches`): no whole-frame value.
+
+    Raises:
+        ValueError: the spec feeds a whole frame's statistic (``frame_stat``) that a composite does not have.
+    """
+    spec = get_input_spec(spec)
+    if spec.frame_stat is not None:
+        raise ValueError(f"input spec {spec.name!r} feeds a whole-frame statistic; a patch made of two renders has "
+                         f"none: its patches cannot be mixed across spp")
+    return spec
+
+
+def mix_patches(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], mask: torch.Tensor,
+                spec: InputSpec | str) -> dict[str, torch.Tensor]:
+    """One patch whose pixels come from two renders of the same view: ``a``'s where ``mask``, ``b``'s elsewhere.
+
+    ``a`` and ``b`` are patch items (``(C, H, W)`` tensors, the same keys, crops of two inputs of one scene at
+    different spp with the same reference); ``mask`` is ``(1, H, W)`` bool (:func:`kpcn.sample_maps.region_mask`).
+    Every tensor is taken per pixel, which is exact for the pixel-wise channels (colour, variances, albedo,
+    targets). A branch's colour gradients (the first three channels of its ``grad_x`` / ``grad_y`` blocks, forward
+    differences of channels 0-2) are recomputed from
+    the composite's colour where the two pixels they difference come from different renders; the gradients of
+    normal, albedo and depth are kept from one render there (those layers differ between renders only by their
+    anti-aliasing noise), and the depth channels keep each render's own depth scale (its largest depth, within
+    about 1 % of the other's). Entries that are not ``(C, H, W)`` (labels) are ``a``'s.
+    """
+    spec = check_mix_spec(spec)
+    out = {}
+    for k, va in a.items():
+        out[k] = torch.where(mask, va, b[k]) if va.dim() == 3 else va
+    for name in spec.branches:
+        if name not in out:
+            continue
+        x = out[name]
+        for block, dim in ((spec.grad_x, -1), (spec.grad_y, -2)):
+            if block is None:
+                continue
+            n = x.shape[dim] - 1
+            g = x[block[0]:block[0] + 3].narrow(dim, 0, n)
+            seam = mask.narrow(dim, 1, n) != mask.narrow(dim, 0, n)
+            diff = x[0:3].narrow(dim, 1, n) - x[0:3].narrow(dim, 0, n)
+            g.copy_(torch.where(seam, diff, g))
+    return out

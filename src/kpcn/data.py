@@ -19,9 +19,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .augment import check_mix_spec, mix_patches
 from .features import frame_to_tensors
 from .inputs import InputSpec, get_input_spec
 from .io import Frame, read_exr
+from .sample_maps import region_mask
 
 PAPER_PATCHES_PER_PIXEL = 400 / (1280 * 720)
 
@@ -199,6 +201,12 @@ class PatchDataset(Dataset):
     :data:`CONVERGED_SPP`), also ``converged``: a 0-d bool tensor, True on their patches; with
     ``label_spp``, also ``spp``: a 0-d int64 tensor, the input's samples per pixel (``CONVERGED_SPP`` for a
     converged pair).
+
+    With ``spp_mix`` > 0 that fraction of the patches (drawn per patch, seeded by the seed, the epoch and the
+    index) are made of two inputs of the same scene at different spp: one's pixels inside a random smooth region
+    (:func:`kpcn.sample_maps.region_mask`), the other's outside (:func:`kpcn.augment.mix_patches`), as a frame
+    from an adaptive sampler has more samples in some regions than in others. Converged pairs are never mixed; ``spp``
+    labels stay the first input's.
     """
 
     def __init__(
@@ -213,6 +221,7 @@ class PatchDataset(Dataset):
         progress: bool = False,
         store_workers: int | None = None,
         label_spp: bool = False,
+        spp_mix: float = 0.0,
     ):
         if sampling not in ("importance", "uniform"):
             raise ValueError(f"sampling must be 'importance' or 'uniform', got {sampling!r}")
@@ -244,10 +253,31 @@ class PatchDataset(Dataset):
             self.sizes = [tuple(fr["albedo"].shape[-2:]) for fr in self.frames]
         self.patches_per_frame = patches_per_frame
         self.seed = seed
+        if not 0.0 <= float(spp_mix) <= 1.0:
+            raise ValueError(f"spp_mix must be a fraction in [0, 1], got {spp_mix!r}")
+        self.spp_mix = float(spp_mix)
+        self.partners = self._mix_partners() if self.spp_mix > 0 else [[] for _ in self.pairs]
+        if self.spp_mix > 0:
+            check_mix_spec(self.spec)
+        self.epoch = 0
         self.index: np.ndarray = np.zeros((0, 3), dtype=np.int64)
         self.resample(0)
 
+    def _mix_partners(self) -> list[list[int]]:
+        """For each frame, the frames it can be mixed with (:meth:`__getitem__`): inputs of the same scene and
+        reference at another spp, the same size, neither a converged pair (each listed input once)."""
+        by_ref: dict = {}
+        for i, p in enumerate(self.pairs):
+            if p.spp != CONVERGED_SPP:
+                by_ref.setdefault((str(p.reference_path), self.sizes[i]), {}).setdefault(str(p.input_path), (i, p.spp))
+        out = []
+        for i, p in enumerate(self.pairs):
+            group = by_ref.get((str(p.reference_path), self.sizes[i]), {}) if p.spp != CONVERGED_SPP else {}
+            out.append(sorted(j for j, spp in group.values() if spp != p.spp))
+        return out
+
     def resample(self, epoch: int) -> None:
+        self.epoch = int(epoch)
         rng = np.random.default_rng([self.seed, epoch])
         rows = []
         for i, (h, w) in enumerate(self.sizes):
@@ -273,13 +303,21 @@ class PatchDataset(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
-    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        f, y, x = (int(v) for v in self.index[idx])
+    def _crop(self, f: int, y: int, x: int) -> dict[str, torch.Tensor]:
         s = self.patch_size
         if self.store is not None:
-            item = self.store.crop(f, y, x, s)
-        else:
-            item = {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
+            return self.store.crop(f, y, x, s)
+        return {k: v[:, y : y + s, x : x + s] for k, v in self.frames[f].items()}
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        f, y, x = (int(v) for v in self.index[idx])
+        item = self._crop(f, y, x)
+        if self.partners[f]:
+            rng = np.random.default_rng([self.seed, self.epoch, idx, 0x5199])
+            if rng.random() < self.spp_mix:
+                other = self._crop(self.partners[f][int(rng.integers(len(self.partners[f])))], y, x)
+                mask = torch.from_numpy(region_mask(item["albedo"].shape[-2:], rng))[None]
+                item = mix_patches(item, other, mask, self.spec)
         if self._flag_converged:
             item["converged"] = torch.tensor(self.pairs[f].spp == CONVERGED_SPP)
         if self.label_spp:

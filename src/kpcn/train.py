@@ -73,7 +73,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .augment import augment_batch, check_exposure_spec, exposure_batch
+from .augment import augment_batch, check_exposure_spec, check_mix_spec, exposure_batch
 from .checkpoint import CheckpointError, save_train_state, save_weights, weights_sha256
 from .config import ConfigError, add_config_args, config_from_args, from_dict, save_config, to_dict
 from .data import FrameDataset, PatchDataset
@@ -149,6 +149,11 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
             check_exposure_spec(spec)
         except ValueError as exc:
             raise ConfigError(f"train.exposure_augment: {exc}") from None
+    if cfg.data.spp_mix:
+        try:
+            check_mix_spec(spec)
+        except ValueError as exc:
+            raise ConfigError(f"data.spp_mix: {exc}") from None
     if cfg.train.detail_stage and model.detail_regression is None:  # a stage implies a spec with the normal
         raise ConfigError(f"train.detail_stage: the model has no detail stage to train for (set model.detail_radius "
                           f"> 0 with an input spec that reads the normal; {spec.name} reads {spec.layers})")
@@ -176,7 +181,8 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
         # what is missing or stale and the others find it done
         ds = PatchDataset(train_pairs, cfg.data.patch_size, cfg.data.patches_per_frame, cfg.data.sampling,
                           cfg.train.seed, spec=spec, store=store_dir(cfg, spec), progress=progress and d.main,
-                          store_workers=cfg.data.prepare_workers, label_spp=cfg.train.distill_min_spp is not None)
+                          store_workers=cfg.data.prepare_workers, label_spp=cfg.train.distill_min_spp is not None,
+                          spp_mix=cfg.data.spp_mix)
         per_rank = max(1, cfg.train.batch_size // d.world)
         if len(ds) // d.world < per_rank:
             raise ConfigError(f"train.batch_size: {cfg.train.batch_size} is more than the {len(ds)} training "

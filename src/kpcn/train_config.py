@@ -62,6 +62,11 @@ class DataConfig:
     #: (``spp_by_root``) then add variety at those spp without taking patches from the others.
     #: ``converged_weight`` multiplies the converged pairs after it
     balance_spp: bool = False
+    #: the fraction of training patches made of two inputs of one scene at different spp, one's pixels inside a
+    #: random smooth region and the other's outside (:class:`kpcn.data.PatchDataset`): a frame from an adaptive
+    #: sampler, whose spp varies from pixel to pixel (measured: a model trained on uniform frames only denoised
+    #: such composites 6-11 % worse per region than the uniform frames; docs/measured.md, thirty-ninth session)
+    spp_mix: float = 0.0
     #: converged pairs only from data sets whose references have at least this many spp (0: all). A
     #: reference close to the inputs' spp is still noisy: listed as its own target, it teaches the model to
     #: keep the noise of a high-spp input (measured: 1024-spp references against 128-256-spp inputs)
@@ -100,6 +105,8 @@ class DataConfig:
         for key in ("val_scenes", "render_first_seed", "workers", "converged_min_ref_spp"):
             _at_least("data", self, key, 0)
         _positive("data", self, "converged_max_noise")
+        if isinstance(self.spp_mix, bool) or not isinstance(self.spp_mix, (int, float)) or not 0 <= self.spp_mix <= 1:
+            raise ConfigError(f"data.spp_mix: expected a fraction in [0, 1], got {self.spp_mix!r}")
         if not isinstance(self.store, str) or not self.store.strip():
             raise ConfigError(f"data.store: expected auto, none or a folder, got {self.store!r}")
         _at_least("data", self, "render_ref_spp", 2)
