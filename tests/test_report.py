@@ -33,6 +33,7 @@ from kpcn.report import (
     equal_time_headline,
     evaluate_converged,
     evaluate_exposure,
+    evaluate_mixed,
     evaluate_scene,
     mc_spp_for_error,
     nearest_spp,
@@ -377,6 +378,34 @@ def test_other_exposures_are_measured_for_every_method(report):
         assert row["relmse"] == pytest.approx(row["input_relmse"], rel=1e-5)
 
 
+def test_frames_whose_spp_varies_are_measured_for_every_method(report):
+    cfg, res = report
+    spp = sorted({nearest_spp(cfg.spp, s) for s in cfg.mixed_spp})
+    assert len(spp) == 2 and sorted((r["scene"], r["method"]) for r in res.mixed) == sorted(
+        (s, m) for s in cfg.scenes for m in _methods())
+    own = {(r["scene"], r["method"], r["spp"]): r for r in res.rows}
+    for r in res.mixed:
+        assert (r["spp_low"], r["spp_high"]) == tuple(spp) and 0.3 <= r["low_share"] <= 0.7
+        # the composite's error lies between its two inputs' (relMSE is a mean over pixels)
+        lo, hi = own[(r["scene"], MC, spp[0])]["relmse"], own[(r["scene"], MC, spp[1])]["relmse"]
+        assert min(lo, hi) - 1e-9 <= r["input_relmse"] <= max(lo, hi) + 1e-9
+    table = res.summary["mixed_table"]
+    assert [t["method"] for t in table] == _methods()
+    assert len(_csv_rows(res.paths["mixed_csv"])) == len(res.mixed)
+    md = res.paths["markdown"].read_text().split("## Varying spp")[1].split("\n## ")[0]
+    for m in _methods():
+        assert f"\n| {m} | {len(cfg.scenes)} |" in md
+    # a method that returns its input has, in each half, the error of the uniform input there
+    sr = _scene_renders(cfg, cfg.scenes[0])
+    rows = evaluate_mixed(sr, [Method("identity", lambda fr: fr["color"])], spp)
+    assert len(rows) == 1
+    r = rows[0]
+    assert r["relmse_low"] == pytest.approx(r["uniform_relmse_low"], rel=1e-6)
+    assert r["relmse_high"] == pytest.approx(r["uniform_relmse_high"], rel=1e-6)
+    assert r["uniform_relmse_low"] > r["uniform_relmse_high"]  # fewer samples, more error
+    assert r["relmse"] == pytest.approx(r["input_relmse"], rel=1e-6)
+
+
 def test_frames_worse_than_their_input_are_all_listed(report):
     cfg, res = report
     mc = {(r["scene"], r["spp"]): r["relmse"] for r in res.rows if r["method"] == MC}
@@ -385,10 +414,13 @@ def test_frames_worse_than_their_input_are_all_listed(report):
     expect |= {(r["scene"], r["spp"], r["method"], None) for r in res.converged if r["relmse"] > r["input_relmse"]}
     expect |= {(r["scene"], r["spp"], r["method"], r["exposure"]) for r in res.exposure
                if r["relmse"] > r["input_relmse"]}
+    expect |= {(r["scene"], r["spp_low"], r["method"], (r["spp_low"], r["spp_high"])) for r in res.mixed
+               if r["relmse"] > r["input_relmse"]}
     worse = res.summary["worse_than_input"]
-    assert {(w["scene"], w["spp"], w["method"], w.get("exposure")) for w in worse} == expect
+    assert {(w["scene"], w["spp"], w["method"], w.get("exposure") or w.get("mixed")) for w in worse} == expect
     assert len(worse) == len(expect)
-    assert res.summary["frames_checked"] == len(res.rows) - len(mc) + len(res.converged) + len(res.exposure)
+    assert res.summary["frames_checked"] == (len(res.rows) - len(mc) + len(res.converged) + len(res.exposure)
+                                             + len(res.mixed))
     md = res.paths["markdown"].read_text().split("## Frames made worse than their input")[1].split("\n## ")[0]
     if worse:
         assert f"**{len(worse)} of {res.summary['frames_checked']} frames**" in md

@@ -47,15 +47,17 @@ What it does, per scene:
    (:func:`reference_floor`, from its variance buffer) is flagged ``ref_limited``;
 3. runs every method on the converged input and measures how much it changes it
    (:func:`kpcn.report.checks.evaluate_converged`), runs every method on the ``exposure_spp`` inputs at other
-   exposures (× 0.01 and × 100: :func:`kpcn.report.checks.evaluate_exposure`), lists every frame a method
+   exposures (× 0.01 and × 100: :func:`kpcn.report.checks.evaluate_exposure`) and on a frame whose spp varies
+   per pixel (the ``mixed_spp`` inputs, 4 and 64, in halves: :func:`kpcn.report.checks.evaluate_mixed`), lists
+   every frame a method
    made further from the reference than its noisy input and every output that
    got further from it with more samples
    (:func:`kpcn.report.checks.worse_with_more_samples`), and marks per spp
    whether each model beats OIDN on mean relMSE, PSNR and SSIM together;
 4. writes ``results.csv`` (one row per scene, spp, method), ``equal_time.csv``,
-   ``converged.csv``, ``exposure.csv``, ``report.md`` (equal-time headline, mean table, against
+   ``converged.csv``, ``exposure.csv``, ``mixed.csv``, ``report.md`` (equal-time headline, mean table, against
    OIDN, the methods' cost: denoise seconds and multiply-adds per pixel, the
-   converged-input table, the other exposures, the frames made worse, the outputs worse with more
+   converged-input table, the other exposures, the varying spp, the frames made worse, the outputs worse with more
    samples, per-scene tables),
    ``error_vs_time.png`` (log-log relMSE against total seconds, one panel per
    scene plus the mean), ``contact_sheet.png`` (tone-mapped crops at one spp)
@@ -94,12 +96,15 @@ from .cache import SceneRenders, reference_floor, refined_spp, render_scene, sce
 from .checks import (
     CONVERGED_FIELDS,
     EXPOSURE_FIELDS,
+    MIXED_FIELDS,
     against_oidn,
     converged_table,
     evaluate_converged,
     evaluate_exposure,
+    evaluate_mixed,
     exposure_table,
     method_table,
+    mixed_table,
     worse_than_input,
     worse_with_more_samples,
 )
@@ -126,14 +131,14 @@ from .run import ReportResult, build_summary, run_report, write_outputs
 from .tables import equal_time_markdown, markdown_report, write_csv
 
 __all__ = [
-    "CONVERGED_FIELDS", "CONVERGED_ROLE", "EXPOSURE_FIELDS",
+    "CONVERGED_FIELDS", "CONVERGED_ROLE", "EXPOSURE_FIELDS", "MIXED_FIELDS",
     "CSV_FIELDS", "DEFAULT_SCENES", "INPUT_ROLE_BASE", "MC", "METRICS", "OIDN",
     "OIDN_MACS_PER_PX", "SETTLE_SECONDS", "TIMES", "WARMUP_ROLE",
     "Method", "ReportConfig", "ReportResult", "SceneRenders",
     "against_oidn", "build_methods", "build_summary", "contact_sheet", "converged_table", "equal_time",
     "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_exposure",
-    "evaluate_scene", "exposure_table", "fitted_slope",
-    "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "model_method",
+    "evaluate_mixed", "evaluate_scene", "exposure_table", "fitted_slope",
+    "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "mixed_table", "model_method",
     "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "refined_spp",
     "render_scene", "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
     "worse_with_more_samples", "write_csv", "write_outputs",

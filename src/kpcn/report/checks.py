@@ -7,7 +7,10 @@
 * :func:`evaluate_exposure`: every method on one spp's input at other exposures (its radiance × 0.01, × 100);
   its error against the reference beside its error at the frame's own exposure. A frame's units (a renderer
   in physical units, an exposure change) must not change how well it is denoised.
-* :func:`worse_than_input`: every frame (ladder, converged and other exposures) where a method's
+* :func:`evaluate_mixed`: every method on a frame whose spp varies per pixel (a low-spp input's pixels inside smooth
+  regions, a high-spp input's outside: what an adaptive sampler gives); its error in each region beside its error
+  there on the uniform frames. A denoiser must denoise each pixel as its own samples allow.
+* :func:`worse_than_input`: every frame (ladder, converged, other exposures, varying spp) where a method's
   output is further from the reference than its noisy input was.
 * :func:`against_oidn`: per model and spp, whether its mean relMSE, PSNR and SSIM
   all beat OIDN's.
@@ -19,9 +22,13 @@ from typing import Sequence
 
 import numpy as np
 
+import zlib
+
 from ..exposure import scale_layers
 from ..io import Frame
 from ..metrics import all_metrics, psnr, relmse
+from ..render import mix_frames
+from ..sample_maps import region_mask
 from .analysis import is_ref_limited, reference_floor
 from .cache import SceneRenders
 from .config import MC, MORE_SAMPLES_TOLERANCE, OIDN
@@ -112,6 +119,65 @@ def exposure_table(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
+#: per-scene fields of the varying-spp table (``mixed.csv``)
+MIXED_FIELDS = ("scene", "method", "spp_low", "spp_high", "low_share", "relmse", "psnr", "ssim", "relmse_low",
+                "uniform_relmse_low", "relmse_high", "uniform_relmse_high", "input_relmse", "worse_than_input")
+
+
+def _region_relmse(x: np.ndarray, ref: np.ndarray, where: np.ndarray) -> float:
+    """relMSE over the pixels ``where`` only (NaN where there are none)."""
+    return relmse(x[where], ref[where]) if where.any() else float("nan")
+
+
+def mixed_mask(label: str, shape: tuple[int, int]) -> np.ndarray:
+    """The report's low-spp regions of a scene: half the frame, in regions an eighth of its side across (cells of
+    1/8 of the shorter side), the same for the same scene label and size on every run."""
+    cell = max(4, min(shape) // 8)
+    return region_mask(shape, np.random.default_rng(zlib.crc32(label.encode())), cell=cell, quantile=0.5)
+
+
+def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[int]) -> list[dict]:
+    """One row per method: the scene's ``spp[0]`` input inside :func:`mixed_mask`'s regions and its ``spp[1]``
+    input outside (:func:`kpcn.render.mix_frames`, with its sample-count layer), denoised; its relMSE in each
+    region (``relmse_low``, ``relmse_high``) beside the same method's on the uniform inputs there
+    (``uniform_relmse_*``), its whole-frame relMSE, PSNR and SSIM, and the composite input's relMSE."""
+    lo, hi = (sr.inputs.get(int(s)) for s in spp)
+    if lo is None or hi is None:
+        return []
+    ref = sr.reference["color"]
+    low = mixed_mask(sr.label, lo.shape)
+    mixed = mix_frames(lo, hi, low)
+    inp = relmse(mixed["color"], ref)
+    out = []
+    for m in methods:
+        img = m(mixed)[0]
+        met = all_metrics(img, ref)
+        out.append({"scene": sr.label, "method": m.name, "spp_low": int(spp[0]), "spp_high": int(spp[1]),
+                    "low_share": float(low.mean()), **{k: met[k] for k in ("relmse", "psnr", "ssim")},
+                    "relmse_low": _region_relmse(img, ref, low),
+                    "uniform_relmse_low": _region_relmse(m(lo)[0], ref, low),
+                    "relmse_high": _region_relmse(img, ref, ~low),
+                    "uniform_relmse_high": _region_relmse(m(hi)[0], ref, ~low),
+                    "input_relmse": inp, "worse_than_input": met["relmse"] > inp})
+    return out
+
+
+def mixed_table(rows: Sequence[dict]) -> list[dict]:
+    """One row per method: over scenes, the means of :func:`evaluate_mixed`'s figures, each region's mean relMSE
+    over the uniform frames' there, and the frames made worse than their input."""
+    out = []
+    for m in dict.fromkeys(r["method"] for r in rows):
+        rs = [r for r in rows if r["method"] == m]
+        row = {"method": m, "spp_low": rs[0]["spp_low"], "spp_high": rs[0]["spp_high"], "scenes": len(rs)}
+        for k in ("relmse", "psnr", "ssim", "relmse_low", "uniform_relmse_low", "relmse_high", "uniform_relmse_high"):
+            row[k] = float(np.mean([r[k] for r in rs]))
+        row["ratio_low"] = row["relmse_low"] / max(row["uniform_relmse_low"], 1e-30)
+        row["ratio_high"] = row["relmse_high"] / max(row["uniform_relmse_high"], 1e-30)
+        row["worse_than_input"] = sum(bool(r["worse_than_input"]) for r in rs)
+        out.append(row)
+    return out
+
+
 def converged_table(rows: Sequence[dict]) -> list[dict]:
     """One row per method: over scenes, the mean and largest change of the converged input
     (relMSE against the input), the median PSNR against the input, the mean relMSE against the
@@ -134,14 +200,15 @@ def converged_table(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
-def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = (), exposure: Sequence[dict] = ()
-                     ) -> list[dict]:
+def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = (), exposure: Sequence[dict] = (),
+                     mixed: Sequence[dict] = ()) -> list[dict]:
     """Frames where a method's relMSE against the reference is above its noisy input's.
 
     ``rows``: the ladder rows (the input's relMSE is the ``mc`` row of the same
-    scene and spp); ``converged``: :func:`evaluate_converged` rows; ``exposure``: :func:`evaluate_exposure` rows.
-    Each item: ``scene, spp, method, relmse, input_relmse, ratio, converged, ref_limited`` (and ``exposure``,
-    the factor, for a frame at another exposure).
+    scene and spp); ``converged``: :func:`evaluate_converged` rows; ``exposure``: :func:`evaluate_exposure` rows;
+    ``mixed``: :func:`evaluate_mixed` rows. Each item: ``scene, spp, method, relmse, input_relmse, ratio, converged,
+    ref_limited`` (and ``exposure``, the factor, for a frame at another exposure; ``mixed``, the two spp, for a frame
+    whose spp varies).
     """
     def item(r: dict, input_relmse: float, ref_limited, converged: bool = False, **extra) -> dict:
         return {"scene": r["scene"], "spp": r["spp"], "method": r["method"], "relmse": r["relmse"],
@@ -157,6 +224,8 @@ def worse_than_input(rows: Sequence[dict], converged: Sequence[dict] = (), expos
     out += [item(r, r["input_relmse"], r["ref_limited"], converged=True) for r in converged if r["worse_than_input"]]
     out += [item(r, r["input_relmse"], r["ref_limited"], exposure=r["exposure"])
             for r in exposure if r["worse_than_input"]]
+    out += [item({**r, "spp": r["spp_low"]}, r["input_relmse"], False, mixed=(r["spp_low"], r["spp_high"]))
+            for r in mixed if r["worse_than_input"]]
     return out
 
 

@@ -43,6 +43,9 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
                    help="every method is also run on the --exposure-spp input with its radiance times each factor; "
                         "none: leave it out (default: 0.01 100)")
     p.add_argument("--exposure-spp", type=int, help="spp of the inputs run at other exposures (default: 4)")
+    p.add_argument("--mixed-spp", type=int, nargs="*", metavar="SPP",
+                   help="every method is also run on a frame made of the first spp's input in half the frame and the "
+                        "second's in the other half (a varying spp); none: leave it out (default: 4 64)")
     p.add_argument("--floor-factor", type=float,
                    help="flag relMSE below this many times the reference's own noise (default: 3)")
     p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="default: 256 256")
@@ -73,6 +76,7 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
         "out": a.out, "name": a.name, "seed": a.seed, "device": a.device, "tile": a.tile, "repeats": a.repeats,
         "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
         "exposure_factors": a.exposure_factors, "exposure_spp": a.exposure_spp,
+        "mixed_spp": a.mixed_spp,
         "oidn": False if a.no_oidn else None, "rerender": True if a.rerender else None,
         "trust_checkpoint": True if a.trust_checkpoint else None,
     }

@@ -71,6 +71,9 @@ class ReportConfig:
     #: every method is also run on the ``exposure_spp`` input (nearest ladder spp) × each factor (empty: none)
     exposure_factors: list[float] = field(default_factory=lambda: [0.01, 100.0])
     exposure_spp: int = 4
+    #: every method is also run on a frame whose spp varies per pixel: the first spp's input (nearest ladder spp) in
+    #: half the frame, the second's in the other half (:func:`kpcn.report.checks.evaluate_mixed`; empty: none)
+    mixed_spp: list[int] = field(default_factory=lambda: [4, 64])
     crop: int = 128  #: side of the centre crop in the contact sheet
     rerender: bool = False
     max_depth: int = 8
@@ -112,6 +115,9 @@ class ReportConfig:
             raise ValueError(f"resolution must be (width, height), each >= 8, got {self.resolution}")
         if any(not (math.isfinite(float(f)) and float(f) > 0) for f in self.exposure_factors):
             raise ValueError(f"exposure_factors must be finite and > 0, got {self.exposure_factors}")
+        if self.mixed_spp and (len(self.mixed_spp) != 2 or not 1 <= self.mixed_spp[0] < self.mixed_spp[1]):
+            raise ValueError(f"mixed_spp must be two sample counts, low then high (or empty: none), got "
+                             f"{self.mixed_spp}")
         if not self.floor_factor > 0:
             raise ValueError(f"floor_factor must be > 0, got {self.floor_factor}")
         if len(self.slope_range) != 2 or not self.slope_range[0] < self.slope_range[1] < 0:

@@ -16,8 +16,8 @@ from ..config import save_config
 from ..io import atomic_write
 from .analysis import equal_time, equal_time_headline, evaluate_scene, mean_table
 from .cache import render_scene, scene_label
-from .checks import (CONVERGED_FIELDS, EXPOSURE_FIELDS, against_oidn, converged_table, evaluate_converged,
-                     evaluate_exposure, exposure_table, method_table,
+from .checks import (CONVERGED_FIELDS, EXPOSURE_FIELDS, MIXED_FIELDS, against_oidn, converged_table,
+                     evaluate_converged, evaluate_exposure, evaluate_mixed, exposure_table, method_table, mixed_table,
                      worse_than_input, worse_with_more_samples)
 from .config import MC, METRICS, OIDN, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
 from .methods import Method, build_methods, check_layers
@@ -65,8 +65,8 @@ def _machine() -> str:
 @dataclass
 class ReportResult:
     """What :func:`run_report` produced: CSV rows, mean rows, equal-time rows, summary.json content, Markdown,
-    file paths, the converged-input rows (one per scene and method) and the other-exposure rows (one per scene,
-    method and factor)."""
+    file paths, the converged-input rows (one per scene and method), the other-exposure rows (one per scene,
+    method and factor) and the varying-spp rows (one per scene and method)."""
 
     rows: list[dict]
     means: list[dict]
@@ -77,15 +77,17 @@ class ReportResult:
     rendered: list[str]  #: EXRs rendered in this run (empty when everything came from the cache)
     converged: list[dict]
     exposure: list[dict] = field(default_factory=list)
+    mixed: list[dict] = field(default_factory=list)
 
 
 def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Method], means: Sequence[dict],
                   eq: Sequence[dict], notes: list[str], machine: str, contact_spp: int, eq_spp: int,
-                  rows: Sequence[dict] = (), converged: Sequence[dict] = (), exposure: Sequence[dict] = ()) -> dict:
+                  rows: Sequence[dict] = (), converged: Sequence[dict] = (), exposure: Sequence[dict] = (),
+                  mixed: Sequence[dict] = ()) -> dict:
     """The content of ``summary.json``: config, mean metrics per method and spp, equal-time figures and their
     median headline, the comparison with OIDN, the methods' costs, the converged-input table and the
-    frames made worse than their input, the methods at other exposures, and the outputs that got worse with more
-    samples."""
+    frames made worse than their input, the methods at other exposures and on frames whose spp varies, and the
+    outputs that got worse with more samples."""
     scene_names = [scene_label(s) if isinstance(s, dict) else os.fspath(s) for s in cfg.scenes]
     return {
         "config": {**asdict(cfg), "scenes": scene_names, "resolution": list(cfg.resolution),
@@ -111,8 +113,10 @@ def build_summary(cfg: ReportConfig, scenes: Sequence[str], methods: Sequence[Me
         "converged_table": converged_table(converged),
         "exposure": list(exposure),
         "exposure_table": exposure_table(exposure),
-        "worse_than_input": worse_than_input(rows, converged, exposure),
-        "frames_checked": sum(r["method"] != MC for r in rows) + len(converged) + len(exposure),
+        "mixed": list(mixed),
+        "mixed_table": mixed_table(mixed),
+        "worse_than_input": worse_than_input(rows, converged, exposure, mixed),
+        "frames_checked": sum(r["method"] != MC for r in rows) + len(converged) + len(exposure) + len(mixed),
         "worse_with_more_samples": worse_with_more_samples(rows),
     }
 
@@ -122,6 +126,7 @@ def write_outputs(folder: Path, rows, means, images, summary: dict, markdown: st
     """Write the CSVs, Markdown, plots, summary and resolved config (each atomically); returns their paths."""
     paths = {"csv": folder / "results.csv", "equal_time_csv": folder / "equal_time.csv",
              "converged_csv": folder / "converged.csv", "exposure_csv": folder / "exposure.csv",
+             "mixed_csv": folder / "mixed.csv",
              "markdown": folder / "report.md",
              "plot": folder / "error_vs_time.png", "contact_sheet": folder / "contact_sheet.png",
              "summary": folder / "summary.json"}
@@ -132,6 +137,7 @@ def write_outputs(folder: Path, rows, means, images, summary: dict, markdown: st
     write_csv(paths["equal_time_csv"], summary.get("equal_time", []), EQUAL_TIME_FIELDS)
     write_csv(paths["converged_csv"], summary.get("converged", []), CONVERGED_FIELDS)
     write_csv(paths["exposure_csv"], summary.get("exposure", []), EXPOSURE_FIELDS)
+    write_csv(paths["mixed_csv"], summary.get("mixed", []), MIXED_FIELDS)
     _write_text(paths["markdown"], markdown)
     plot_error_vs_time(paths["plot"], rows, means, floor_factor=cfg.floor_factor if cfg else None)
     contact_sheet(paths["contact_sheet"], images, rows, contact_spp, crop)
@@ -154,7 +160,10 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         notes.append(f"equal-time figure at {eq_spp} spp ({cfg.equal_time_spp} is not on the ladder)")
 
     exposure_spp = nearest_spp(cfg.spp, cfg.exposure_spp)
-    rows, renders, images, rendered, converged, exposure = [], {}, {}, [], [], []
+    mixed_spp = sorted({nearest_spp(cfg.spp, s) for s in cfg.mixed_spp})
+    if cfg.mixed_spp and len(mixed_spp) < 2:
+        notes.append(f"no varying-spp frames: {cfg.mixed_spp} spp are one spp of the ladder {cfg.spp}")
+    rows, renders, images, rendered, converged, exposure, mixed = [], {}, {}, [], [], [], []
     for scene in cfg.scenes:
         sr = render_scene(cfg, scene, say)
         if sr.label in renders:  # two XML files with the same name
@@ -168,6 +177,8 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         rows += r
         converged += evaluate_converged(sr, methods, cfg.floor_factor)
         exposure += evaluate_exposure(sr, methods, exposure_spp, cfg.exposure_factors, r)
+        if len(mixed_spp) == 2:
+            mixed += evaluate_mixed(sr, methods, mixed_spp)
         images[sr.label] = imgs
         say(f"evaluated {sr.label}")
 
@@ -178,7 +189,7 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
     if not model_names:
         notes.append("no kpcn model was evaluated: no equal-time figure")
     summary = build_summary(cfg, list(renders), methods, means, eq, notes, machine, contact_spp, eq_spp,
-                            rows, converged, exposure)
+                            rows, converged, exposure, mixed)
     md = markdown_report(rows, means, eq, summary)
     paths = write_outputs(cfg.folder, rows, means, images, summary, md, contact_spp, cfg.crop, cfg)
-    return ReportResult(rows, means, eq, summary, md, paths, rendered, converged, exposure)
+    return ReportResult(rows, means, eq, summary, md, paths, rendered, converged, exposure, mixed)

@@ -172,6 +172,21 @@ def _exposure_markdown(et: Sequence[dict]) -> str:
     return text + "\n\n" + _md_table(et, cols)
 
 
+def _mixed_markdown(mt: Sequence[dict]) -> str:
+    if not mt:
+        return "Not measured (mixed_spp is empty)."
+    lo, hi = mt[0]["spp_low"], mt[0]["spp_high"]
+    text = (f"Each method on a frame whose spp varies per pixel, as an adaptive sampler leaves it: the {lo}-spp "
+            f"input in half the frame (smooth regions), the {hi}-spp input in the other half, with its "
+            "`sampleCount` layer. relMSE in each half against the same method's on the uniform frame there "
+            "(*uniform*): a ratio above 1 is error the change of spp added.")
+    cols = [("method", "method"), ("scenes", "scenes"), ("relmse", "relMSE"), ("psnr", "PSNR"), ("ssim", "SSIM"),
+            ("relmse_low", f"{lo}-spp half"), ("uniform_relmse_low", "uniform"), ("ratio_low", "ratio"),
+            ("relmse_high", f"{hi}-spp half"), ("uniform_relmse_high", "uniform"), ("ratio_high", "ratio"),
+            ("worse_than_input", "frames worse than input")]
+    return text + "\n\n" + _md_table(mt, cols)
+
+
 def _worse_markdown(worse: Sequence[dict], summary: dict) -> str:
     n_frames = summary.get("frames_checked", 0)
     if not worse:
@@ -184,6 +199,7 @@ def _worse_markdown(worse: Sequence[dict], summary: dict) -> str:
     for w in worse:
         tag = " (converged input)" if w["converged"] else ""
         tag += f" (× {w['exposure']:g} exposure)" if w.get("exposure") else ""
+        tag += f" (varying spp, {w['mixed'][0]}/{w['mixed'][1]})" if w.get("mixed") else ""
         tag += f" (input within {_k(summary)} reference noise)" if w["ref_limited"] else ""
         lines.append(f"- {w['scene']} @ {w['spp']} spp{tag}: {w['method']} relMSE {w['relmse']:.4g} > "
                      f"input {w['input_relmse']:.4g} (×{w['ratio']:.3g})")
@@ -250,11 +266,12 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
     parts += ["", "## Converged input", "",
               _converged_markdown(summary.get("converged_table", []), summary)]
     parts += ["", "## Other exposures", "", _exposure_markdown(summary.get("exposure_table", []))]
+    parts += ["", "## Varying spp", "", _mixed_markdown(summary.get("mixed_table", []))]
     parts += ["", "## Frames made worse than their input", "", _worse_markdown(summary.get("worse_than_input", []), summary)]
     parts += ["", "## Worse with more samples", "", _more_samples_markdown(summary.get("worse_with_more_samples", []))]
     parts += ["", "## Per scene", "", _md_table(rows, [("scene", "scene"), ("spp", "spp"), ("method", "method"),
                                                         *_ROW_COLS, ("ref_limited", f"below {k} ref noise")])]
     parts += ["", "Figures: `error_vs_time.png` (relMSE against total seconds; dashed: "
                   f"{k} the reference's noise), `contact_sheet.png` ({cfg['contact_spp']} spp). Tables: "
-                  "`results.csv`, `equal_time.csv`, `converged.csv`, `exposure.csv`, `summary.json`."]
+                  "`results.csv`, `equal_time.csv`, `converged.csv`, `exposure.csv`, `mixed.csv`, `summary.json`."]
     return "\n".join(parts) + "\n"
