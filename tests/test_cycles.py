@@ -256,6 +256,35 @@ def test_denoise_cycles_file(noisy, cycles_dir):
 
 
 @needs_bpy
+def test_adaptive_sampling_gives_each_pixel_its_sample_count(noisy, cycles_dir):
+    """Cycles' adaptive sampling, rendered for real: the Debug Sample Count pass is read as the sampleCount layer
+    (each pixel's samples, from Cycles' minimum to --spp, more where the image is noisier), and the denoised file
+    keeps it; a render without adaptive sampling has no count."""
+    import torch
+
+    import kpcn
+    from kpcn.io import SAMPLE_COUNT
+    from kpcn.models import create_model
+
+    path = cycles_dir / "adaptive.exr"
+    rc.render_cycles(None, path, spp=64, seed=2, resolution=(48, 48), adaptive_threshold=0.05)
+    frame = read_exr(path)
+    n = frame.sample_count()
+    assert frame.meta["spp"] == 64 and "Debug Sample Count" in frame.meta["cycles_passes"][SAMPLE_COUNT]
+    assert np.array_equal(n, np.round(n)) and 1 <= n.min() < n.max() == 64
+    assert 0.1 < float((n < 64).mean()) < 1  # some pixels stopped early, not all
+    # the pixels that got every sample are the noisier ones: a higher relative variance between neighbours
+    lum = frame["color"].mean(-1)
+    rough = np.abs(lum - np.roll(lum, 1, 0)) / (lum + 0.05)
+    assert rough[n == 64].mean() > rough[n < 64].mean()
+    assert SAMPLE_COUNT not in read_exr(noisy[0])  # without adaptive sampling there is no count pass
+    torch.manual_seed(0)
+    net = create_model("kpcn", input_spec="split_novar", layers=2, width=8, kernel_size=5)
+    kpcn.denoise(path, model=net, out_path=cycles_dir / "adaptive_denoised.exr")
+    np.testing.assert_array_equal(read_exr(cycles_dir / "adaptive_denoised.exr")[SAMPLE_COUNT][..., 0], n)
+
+
+@needs_bpy
 def test_variance_model_on_cycles_file_says_why(noisy):
     from kpcn.inference import load_model
 
@@ -396,6 +425,7 @@ def test_render_cycles_without_bpy_says_how_to_install(monkeypatch, tmp_path, ca
     (["cycles", "--generated", "--seed", "-1", "--out", "x.exr"], "--seed"),
     (["cycles", "--generated", "--resolution", "0", "4", "--out", "x.exr"], "--resolution"),
     (["cycles", "missing.blend", "--out", "x.exr"], "no such .blend file"),
+    (["cycles", "--generated", "--adaptive-threshold", "0", "--out", "x.exr"], "--adaptive-threshold"),
 ])
 def test_cli_usage_errors(argv, text, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)

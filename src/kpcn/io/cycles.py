@@ -21,6 +21,8 @@ layer           Cycles passes
 ``denoisingAlbedo``  Denoising Albedo (optional): the albedo OIDN takes, which follows mirrors and glass
                 to the next rough surface; the ``color_albedo_normal`` spec reads it in place of
                 ``albedo`` when a frame has it (:attr:`kpcn.inputs.InputSpec.prefer`)
+``sampleCount`` Debug Sample Count (optional) × the render's samples: each pixel's samples under adaptive
+                sampling (Cycles writes them as a fraction of the render's samples)
 ==============  ================================================================================
 
 Cycles stores each light pass divided by its colour pass, so the products above
@@ -55,6 +57,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from ..constants import OIDN_ALBEDO
+from .frame import SAMPLE_COUNT
 
 __all__ = ["CYCLES_PASSES", "CyclesFile", "convert_cycles", "cycles_pass_help"]
 
@@ -82,6 +85,7 @@ CYCLES_PASSES: dict[str, tuple[str, ...]] = {
     "denoising_depth": ("Denoising Depth",),
     "normal": ("Normal",),
     "depth": ("Depth", "Z"),
+    "sample_count": ("Debug Sample Count",),
 }
 
 # Where each pass is switched on: (View Layer Properties → Passes → section, its checkbox, the bpy property)
@@ -105,6 +109,7 @@ _HOW = {
     "denoising_depth": ("Data", "Denoising Data", "view_layer.cycles.denoising_store_passes"),
     "normal": ("Data", "Normal", "view_layer.use_pass_normal"),
     "depth": ("Data", "Z", "view_layer.use_pass_z"),
+    "sample_count": ("Data", "Debug Sample Count", "view_layer.cycles.pass_debug_sample_count"),
 }
 
 _DIFFUSE = (("diffuse_direct", "diffuse_indirect", "diffuse_color"),)
@@ -313,13 +318,20 @@ def convert_cycles(
             depth = np.where(depth >= _NO_HIT_DEPTH, np.float32(0), depth).astype(np.float32)
         derived["depth"] = depth
 
+    header_meta = _header_meta(header or {}, view_layer)
+    spp = meta.get("spp", header_meta.get("spp"))
+    if "sample_count" in cf.passes and spp:
+        # Cycles writes each pixel's samples over the render's (adaptive sampling); measured: multiples of
+        # 16/64 at 64 samples, 1 everywhere without adaptive sampling
+        derived[SAMPLE_COUNT] = np.round(get("sample_count")[..., :1] * float(spp))
+        cf.used[SAMPLE_COUNT] = f"{CYCLES_PASSES['sample_count'][0]} × {int(spp)} samples"
     added = [n for n in derived if n not in layers]
     for name in added:
         layers[name] = np.ascontiguousarray(derived[name], dtype=np.float32)
     meta["source_layout"] = "cycles"
     meta["cycles_view_layer"] = view_layer
     meta["cycles_passes"] = {n: cf.used[n] for n in added}
-    for key, value in _header_meta(header or {}, view_layer).items():
+    for key, value in header_meta.items():
         meta.setdefault(key, value)
 
     if "color" in layers and "diffuse" in added and "specular" in added:

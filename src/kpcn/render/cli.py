@@ -88,6 +88,9 @@ def _parse_args(argv=None):
     c.add_argument("--spp", type=int, default=16, help="samples per pixel (>= 1)")
     c.add_argument("--seed", type=int, default=0, help="scene.cycles.seed (>= 0)")
     c.add_argument("--out", required=True, help="multilayer EXR to write")
+    c.add_argument("--adaptive-threshold", type=float, metavar="T",
+                   help="Cycles' adaptive sampling with this noise threshold, --spp the most a pixel gets; the "
+                        "file's sampleCount layer says how many each got (default: off, every pixel --spp)")
     c.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
                    help="image size (default: the .blend's; 128 128 for --generated)")
     c.add_argument("--debug", **debug)
@@ -181,13 +184,15 @@ def _cycles(args) -> None:
         raise UsageError(f"--seed: must be in [0, 2147483647] (scene.cycles.seed), got {args.seed}")
     if args.resolution is not None and min(args.resolution) < 1:
         raise UsageError(f"--resolution: width and height must be >= 1, got {args.resolution[0]} {args.resolution[1]}")
+    if args.adaptive_threshold is not None and not 0 < args.adaptive_threshold < 1:
+        raise UsageError(f"--adaptive-threshold: must be in (0, 1), got {args.adaptive_threshold}")
     out = Path(args.out)
     if out.is_dir():
         raise UsageError(f"--out: {out} is a folder; give the EXR file to write")
     if args.blend is not None and out.resolve() == Path(args.blend).resolve():
         raise UsageError(f"--out: {out} is the .blend file itself")
     r = render_cycles(args.blend, out, args.spp, args.seed, tuple(args.resolution) if args.resolution else None,
-                      variant=args.variant)
+                      variant=args.variant, adaptive_threshold=args.adaptive_threshold)
     print(f"{r.path}: {r.resolution[0]}x{r.resolution[1]}, {r.spp} spp, {r.seconds:.2f} s "
           f"(Blender Cycles, {len(r.passes)} passes)")
 

@@ -24,7 +24,7 @@ crashes Blender ends the child, not the caller. The child
   plane, a glossy metal sphere, a glass sphere, an area light, a uniform world
   light and a camera);
 * renders with Cycles on the CPU: ``spp`` samples exactly (adaptive sampling
-  off, view-layer sample overrides ignored, no time limit), no denoiser, fixed
+  off unless asked for, then with the Debug Sample Count pass, view-layer sample overrides ignored, no time limit), no denoiser, fixed
   ``scene.cycles.seed``, a 1-pixel box pixel filter (wider filters correlate
   neighbouring pixels), no sample clamping, compositing and sequencer off (the
   file holds the render passes, not a composite);
@@ -135,7 +135,8 @@ def cycles_seed(seed: int, role: int) -> int:
 
 
 def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolution=None, *,
-                  timeout: float | None = None, variant: int | None = None) -> CyclesRender:
+                  timeout: float | None = None, variant: int | None = None,
+                  adaptive_threshold: float | None = None) -> CyclesRender:
     """Render a ``.blend`` (or, with ``None``, a generated scene) with Cycles into a multilayer EXR.
 
     Args:
@@ -143,12 +144,17 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
             ``None`` for kpcn's generated scene (:data:`GENERATED_RESOLUTION` unless
             ``resolution`` is given).
         out_path: the EXR to write (atomically; missing folders are created).
-        spp: samples per pixel (exactly; adaptive sampling is switched off).
+        spp: samples per pixel (exactly; adaptive sampling is switched off), or with ``adaptive_threshold`` the
+            most a pixel gets.
         seed: ``scene.cycles.seed``.
         resolution: ``(width, height)``; ``None`` keeps the ``.blend``'s size.
         timeout: seconds after which the render is stopped (``None``: no limit).
         variant: for the generated scene, a seed >= 0 that draws its materials, layout, light and view
             (:func:`kpcn.render.cycles_scene.scene_params`); ``None``: the fixed layout.
+        adaptive_threshold: Cycles' adaptive sampling with this noise threshold (``cycles.adaptive_threshold``,
+            minimum samples Cycles' automatic): a pixel stops taking samples once its noise is below it, and the
+            file gets the Debug Sample Count pass, which :func:`kpcn.io.read_exr` reads as the ``sampleCount``
+            layer. ``None``: every pixel gets ``spp``.
 
     Returns:
         A :class:`CyclesRender` (path, size, render seconds, the file's layers,
@@ -161,6 +167,8 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         RuntimeError: Blender failed otherwise (the message ends with its last output).
     """
     blend, out, resolution = _check(blend_path_or_none, out_path, spp, seed, resolution)
+    if adaptive_threshold is not None and not 0 < float(adaptive_threshold) < 1:
+        raise ValueError(f"render_cycles: adaptive_threshold must be in (0, 1), got {adaptive_threshold!r}")
     if variant is not None:
         if blend is not None:
             raise ValueError("render_cycles: variant is for the generated scene, not a .blend file")
@@ -169,7 +177,8 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         raise BlenderUnavailable(f"Blender's Python module bpy is not installed: {BLENDER_HELP}")
     label = str(blend) if blend else GENERATED + (f":{variant}" if variant is not None else "")
     job = {"blend": str(blend.resolve()) if blend else None, "scene": label, "variant": variant,
-           "out": str(out.resolve()), "spp": spp, "seed": seed, "resolution": list(resolution) if resolution else None}
+           "out": str(out.resolve()), "spp": spp, "seed": seed, "resolution": list(resolution) if resolution else None,
+           "adaptive_threshold": None if adaptive_threshold is None else float(adaptive_threshold)}
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parents[2])  # the folder that holds the kpcn package
     env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -266,7 +275,7 @@ def _render(bpy, job: dict) -> dict:
     _configure(scene, job, notes)
     view = [vl for vl in scene.view_layers if vl.use]
     for vl in view:
-        for prop in PASSES:
+        for prop in PASSES + (("cycles.pass_debug_sample_count",) if job.get("adaptive_threshold") else ()):
             owner, attr = (vl.cycles, prop[len("cycles."):]) if prop.startswith("cycles.") else (vl, prop)
             setattr(owner, attr, True)
 
@@ -288,7 +297,11 @@ def _configure(scene, job: dict, notes: list[str] | None) -> None:
     c = scene.cycles
     _set(c, "device", "CPU", notes, "cycles.device")
     _set(c, "samples", int(job["spp"]), notes, "cycles.samples")
-    _set(c, "use_adaptive_sampling", False, notes, "cycles.use_adaptive_sampling")
+    adaptive = job.get("adaptive_threshold")
+    _set(c, "use_adaptive_sampling", bool(adaptive), notes, "cycles.use_adaptive_sampling")
+    if adaptive:
+        _set(c, "adaptive_threshold", float(adaptive), notes, "cycles.adaptive_threshold")
+        _set(c, "adaptive_min_samples", 0, notes, "cycles.adaptive_min_samples")
     _set(c, "use_layer_samples", "IGNORE", notes, "cycles.use_layer_samples")
     _set(c, "time_limit", 0.0, notes, "cycles.time_limit")
     if hasattr(c, "use_sample_subset"):
