@@ -613,5 +613,8 @@ def test_a_frame_whose_spp_varies_is_denoised_region_by_region_and_keeps_its_cou
     assert set(np.unique(written[SAMPLE_COUNT])) == {4.0, 64.0}
     holes = mixed.layers[SAMPLE_COUNT].copy()
     holes[:2, :3] = 0  # pixels an adaptive sampler gave no samples
-    with pytest.warns(UserWarning, match="6 pixel.*have no samples"):
+    holes[5, :4] = 1  # and some only one
+    with pytest.warns(UserWarning) as caught:
         dn.denoise(Frame({**mixed.layers, SAMPLE_COUNT: holes}, mixed.meta))
+    said = " ".join(str(w.message) for w in caught)
+    assert "6 pixel(s) have no samples" in said and "4 pixel(s) have one sample" in said

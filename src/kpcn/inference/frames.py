@@ -84,7 +84,8 @@ def as_frame(src, layers) -> tuple[Frame, float]:
 def validate(frame: Frame, layers) -> tuple[int, int]:
     """``(H, W)`` of ``frame``, after checking that ``layers`` (and colour, its variance and the sample count, where
     present) share it and that the colour-like ones have 3 channels (a clear ``ValueError`` naming the layer
-    otherwise). Pixels whose sample count is below 1 (no samples: nothing to denoise) are named in a warning."""
+    otherwise). Pixels whose sample count is below 1 (no samples), or 1 in a frame with variances (a variance from
+    one sample is not known), are counted in a warning."""
     h, w = frame[layers[0]].shape[:2]
     extra = tuple(n for n in ("color", "colorVariance", SAMPLE_COUNT) if n in frame and n not in layers)
     for name in tuple(layers) + extra:
@@ -96,10 +97,15 @@ def validate(frame: Frame, layers) -> tuple[int, int]:
     if h == 0 or w == 0:
         raise ValueError(f"{frame.path or 'frame'}: empty image ({w}x{h})")
     if SAMPLE_COUNT in frame:
-        empty = int((frame[SAMPLE_COUNT] < 1).sum())
+        n = frame[SAMPLE_COUNT]
+        empty, single = int((n < 1).sum()), int(((n >= 1) & (n < 2)).sum())
         if empty:
             warnings.warn(f"{frame.path or 'frame'}: {empty} pixel(s) have no samples ({SAMPLE_COUNT} < 1): the "
                           f"denoiser takes their colour and variances for a pixel known exactly", stacklevel=3)
+        if single and any(k.endswith("Variance") for k in frame.keys()):
+            warnings.warn(f"{frame.path or 'frame'}: {single} pixel(s) have one sample ({SAMPLE_COUNT}), whose "
+                          f"variance cannot be estimated; a variance of 0 there reads as a pixel known exactly",
+                          stacklevel=3)
     return h, w
 
 
