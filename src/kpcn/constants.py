@@ -7,6 +7,9 @@ EPS = 0.00316
 #: + feature variances 3.
 N_FEATURES = 27
 
+#: the two branches of the split inputs, and the layers each reads besides the shared albedo, normal and depth
+BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
+
 #: the optional layer holding the albedo OIDN takes, read in place of ``albedo`` by models and baselines made for
 #: it (the colour + albedo + normal spec, OIDN) where a frame has it: Blender Cycles' Denoising Albedo, which
 #: follows mirrors and glass to the next rough surface (``albedo`` is the diffuse albedo at the first hit)

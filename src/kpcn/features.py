@@ -32,7 +32,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from .constants import EPS, N_FEATURES  # noqa: F401  (N_FEATURES re-exported)
+from .constants import BRANCH_LAYERS, EPS, N_FEATURES  # noqa: F401  (BRANCH_LAYERS, N_FEATURES re-exported)
 from .io import Frame
 from .ops.fused import branch_features_native
 
@@ -173,7 +173,6 @@ class Features:
 
 BRANCHES = ("diffuse", "specular")
 SHARED_LAYERS = ("albedo", "normal", "depth", "albedoVariance", "normalVariance", "depthVariance")
-BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
 
 
 def make_features(

@@ -35,7 +35,7 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 
-from .constants import EPS, OIDN_ALBEDO
+from .constants import BRANCH_LAYERS, EPS, OIDN_ALBEDO
 from .features import COLOR_VAR, FEATURE_VAR, branch_features, depth_scale_of, finite_copy, frame_to_tensors
 from .noise import REVISION as NOISE_REVISION, noise_precision
 
@@ -223,12 +223,11 @@ def _split_colour_variance(inputs: Tensors) -> torch.Tensor:
     return var_d + var_s
 
 
-_SPLIT_BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specular", "specularVariance")}
 _AUX = ("albedo", "normal", "depth")
 
 
 def _split_spec(name: str, variances: bool, description: str) -> InputSpec:
-    branch_layers = {b: ls if variances else ls[:1] for b, ls in _SPLIT_BRANCH_LAYERS.items()}
+    branch_layers = {b: ls if variances else ls[:1] for b, ls in BRANCH_LAYERS.items()}
     layers = ("diffuse", "specular") + _AUX
     if variances:
         layers += tuple(f"{n}Variance" for n in layers)

@@ -15,6 +15,7 @@ import ctypes
 
 import torch
 
+from ..constants import BRANCH_LAYERS
 from . import native
 
 __all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "residual_regression_native",
@@ -192,8 +193,7 @@ def branch_features_native(buffers, depth_scale, branches
         ``({"albedo": (1, 3, h, w), branch: (1, 27, h, w), ...}, {variance layer: values clamped (0-dim)})``, or
         None where the native path does not apply (a missing layer is the caller's to report)."""
     # an unlisted branch's layers are not read (the albedo stands in for them)
-    unused = {n for b, ls in (("diffuse", FEATURE_LAYERS[0::5]), ("specular", FEATURE_LAYERS[1::5]))
-              if b not in branches for n in ls}
+    unused = {n for b, ls in BRANCH_LAYERS.items() if b not in branches for n in ls}
     if depth_scale is None or not branches or any(n not in buffers for n in FEATURE_LAYERS if n not in unused):
         return None
     ts = [buffers["albedo"] if n in unused else buffers[n] for n in FEATURE_LAYERS]
