@@ -605,7 +605,9 @@ def test_a_frame_whose_spp_varies_is_denoised_region_by_region_and_keeps_its_cou
     mixed = mix_frames(lo, hi, low)
     write_exr(src, mixed.layers, mixed.meta)
     out = tmp_path / "mixed_denoised.exr"
-    color = dn.denoise(str(src), out_path=out)
+    res = dn.denoise_result(str(src), out_path=out)
+    color = res.color
+    assert res.stats.sample_count == (4.0, 64.0) and "4-64 spp per pixel" in res.stats.summary()
     for where in (low, ~low):
         assert relmse(color[where], ref[where]) < 0.7 * relmse(mixed["color"][where], ref[where])
     written = read_exr(out)

@@ -45,7 +45,7 @@ import torch
 
 from ..exposure import exposure_scale, frame_key, scale_layers
 from ..features import frame_to_tensors
-from ..io import Frame
+from ..io import SAMPLE_COUNT, Frame
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .detail import refine_detail
 from .ensemble import check_views, ensemble_result
@@ -123,6 +123,8 @@ def denoise_result(
                          device=str(dev), read_seconds=read_s, nonfinite=dict(frame.nonfinite),
                          branch_tiles_run={b: 0 for b in spec.branches},
                          branch_tiles_skipped={b: 0 for b in spec.branches})
+    if SAMPLE_COUNT in frame:  # a frame whose spp varies per pixel (it is denoised from its variances)
+        stats.sample_count = (float(frame[SAMPLE_COUNT].min()), float(frame[SAMPLE_COUNT].max()))
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()

@@ -38,6 +38,8 @@ class DenoiseStats:
             (:mod:`kpcn.inference.detail`); 0: none was run. detail_seconds: its wall time (part of ``seconds``).
         exposure_key: the frame's exposure key (:func:`kpcn.exposure.frame_key`) for a model with an
             ``exposure_range``; None otherwise. exposure_scale: the factor its radiance was denoised at (1.0: its own).
+        sample_count: ``(least, most)`` samples of a pixel, for a frame with a ``sampleCount`` layer (its spp
+            varies per pixel); None otherwise.
         views: how many mirrored copies of the frame were denoised and averaged (:mod:`kpcn.inference.ensemble`);
             the other fields are the first view's, ``seconds`` and ``detail_seconds`` the sums over all.
     """
@@ -69,6 +71,7 @@ class DenoiseStats:
     detail_seconds: float = 0.0
     exposure_key: float | None = None
     exposure_scale: float = 1.0
+    sample_count: tuple[float, float] | None = None
     views: int = 1
 
     def summary(self) -> str:
@@ -93,6 +96,8 @@ class DenoiseStats:
             parts.append(f"detail stage {self.detail_seconds:.2f} s")
         if self.exposure_scale != 1.0:
             parts.append(f"exposure key {self.exposure_key:.3g} denoised x {self.exposure_scale:.3g}")
+        if self.sample_count is not None:
+            parts.append(f"{self.sample_count[0]:g}-{self.sample_count[1]:g} spp per pixel")
         if self.views > 1:
             parts.append(f"mean of {self.views} mirrored views")
         return ", ".join(parts)
