@@ -250,11 +250,11 @@ def mix_patches(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], mask: to
     different spp with the same reference); ``mask`` is ``(1, H, W)`` bool (:func:`kpcn.sample_maps.region_mask`).
     Every tensor is taken per pixel, which is exact for the pixel-wise channels (colour, variances, albedo,
     targets). A branch's colour gradients (the first three channels of its ``grad_x`` / ``grad_y`` blocks, forward
-    differences of channels 0-2) are recomputed from
-    the composite's colour where the two pixels they difference come from different renders; the gradients of
-    normal, albedo and depth are kept from one render there (those layers differ between renders only by their
-    anti-aliasing noise), and the depth channels keep each render's own depth scale (its largest depth, within
-    about 1 % of the other's). Entries that are not ``(C, H, W)`` (labels) are ``a``'s.
+    differences of channels 0-2) are recomputed from the composite's colour where the two pixels they difference
+    come from different renders; the gradients of normal, albedo and depth are kept from one render there (those
+    layers differ between renders only by their anti-aliasing noise), and the depth channels keep each render's own
+    depth scale (its largest depth, within about 1 % of the other's). Entries that are not ``(C, H, W)`` (labels)
+    are ``a``'s.
     """
     spec = check_mix_spec(spec)
     out = {}

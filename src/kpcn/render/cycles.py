@@ -24,7 +24,8 @@ crashes Blender ends the child, not the caller. The child
   plane, a glossy metal sphere, a glass sphere, an area light, a uniform world
   light and a camera);
 * renders with Cycles on the CPU: ``spp`` samples exactly (adaptive sampling
-  off unless asked for, then with the Debug Sample Count pass, view-layer sample overrides ignored, no time limit), no denoiser, fixed
+  off unless asked for, then with the Debug Sample Count pass; view-layer
+  sample overrides ignored, no time limit), no denoiser, fixed
   ``scene.cycles.seed``, a 1-pixel box pixel filter (wider filters correlate
   neighbouring pixels), no sample clamping, compositing and sequencer off (the
   file holds the render passes, not a composite);

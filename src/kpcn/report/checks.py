@@ -18,11 +18,10 @@
 """
 from __future__ import annotations
 
+import zlib
 from typing import Sequence
 
 import numpy as np
-
-import zlib
 
 from ..exposure import scale_layers
 from ..io import Frame
