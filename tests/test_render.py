@@ -292,3 +292,29 @@ def test_frames_whose_spp_varies_per_pixel_merge_pixel_by_pixel():
         mix_frames(frame(samples[:4]), frame(samples[:16]), mask[:3])
     with pytest.raises(ValueError, match="neither a sampleCount layer nor an spp"):
         merge_frames(Frame(dict(frame(samples[:4]).layers)), frame(samples[:4]))
+
+
+def test_a_sample_map_renders_each_pixel_with_its_own_samples(mi):
+    """render_sample_map (an adaptive sampler's request): each pixel of a map of 4, 8 and 12 samples is that pixel of
+    the uniform render with the same passes, mean and variances, and the frame says its counts."""
+    from kpcn.io import SAMPLE_COUNT
+    from kpcn.render import render_sample_map
+
+    res = (16, 12)
+    counts = np.full((12, 16), 4)
+    counts[:, 8:] = 8
+    counts[:3] = 12
+    mapped = render_sample_map("test:glossy", counts, 3, resolution=res, pass_spp=4)
+    assert np.array_equal(mapped[SAMPLE_COUNT][..., 0], counts) and mapped.spp == round(counts.mean())
+    for c in (4, 8, 12):
+        whole = render_frame("test:glossy", c, 3, resolution=res, pass_spp=4)
+        at = counts == c
+        assert sorted(set(mapped.layers) - {SAMPLE_COUNT}) == sorted(whole.layers)
+        for name in whole.layers:
+            np.testing.assert_allclose(mapped[name][at], whole[name][at], rtol=1e-5, atol=1e-7, err_msg=f"{c} {name}")
+    assert not np.allclose(mapped["color"][counts == 4], render_frame("test:glossy", 4, 4, resolution=res)["color"]
+                           [counts == 4])  # another seed: other samples
+    with pytest.raises(ValueError, match="integers >= 2"):
+        render_sample_map("test:glossy", np.ones((12, 16)), 3, resolution=res)
+    with pytest.raises(ValueError, match="the film 12x16"):
+        render_sample_map("test:glossy", np.full((16, 12), 4), 3, resolution=res)

@@ -38,13 +38,14 @@ Modules: :mod:`~kpcn.render.scene` (variant, loading, overrides),
 from .cli import main
 from .dataset import DatasetConfig, ensure_dataset, render_dataset
 from .manifest import DatasetError, DatasetStatus, dataset_status
-from .frame import RenderStats, extend_frame, merge_frames, mix_frames, n_passes, pass_seed, render_frame, render_to_exr
+from .frame import (RenderStats, extend_frame, merge_frames, mix_frames, n_passes, pass_seed, render_frame,
+                    render_sample_map, render_to_exr)
 from .scene import CAMERAS, LLVM_HELP, VARIANT, RendererUnavailable, SceneError, ensure_variant, load_scene
 
 __all__ = [
     "CAMERAS", "LLVM_HELP", "VARIANT", "RendererUnavailable", "SceneError", "ensure_variant", "load_scene",
     "RenderStats", "extend_frame", "merge_frames", "mix_frames", "n_passes", "pass_seed", "render_frame",
-    "render_to_exr",
+    "render_sample_map", "render_to_exr",
     "render_dataset", "DatasetConfig", "main",
     "ensure_dataset", "DatasetError", "DatasetStatus", "dataset_status",
 ]

@@ -67,40 +67,112 @@ def render_frame(
     """
     if spp < 2:
         raise ValueError(f"spp must be >= 2 to estimate variances, got {spp}")
-    mi = ensure_variant()
-    mi_scene, name, notes = loaded or load_scene(scene, resolution, params)
-    integrator = mi.load_dict({"type": "kpcn_split", "max_depth": int(max_depth), "albedo_only": bool(albedo_only)})
+    mi, mi_scene, name, integrator = _setup(scene, resolution, params, loaded, max_depth, albedo_only)
+    acc, seconds = None, 0.0
+    for n, arr, dt in _passes(mi, mi_scene, integrator, _pass_sizes(spp, pass_spp), seed, role, first_pass):
+        acc = arr * n if acc is None else acc + arr * n
+        seconds += dt
+    return Frame(_layers(acc / spp, spp), _meta(spp, seconds, seed, name))
 
-    layout = [("color", 3)] + aov_layout()
-    n_ch = sum(c for _, c in layout)
-    passes = []
-    left = spp
+
+def render_sample_map(
+    scene: Any,
+    counts: np.ndarray,
+    seed: int = 0,
+    resolution: tuple[int, int] | None = None,
+    *,
+    max_depth: int = 8,
+    pass_spp: int = 256,
+    role: int = 0,
+    loaded=None,
+    params: Mapping[str, Any] | None = None,
+    first_pass: int = 0,
+) -> Frame:
+    """Render ``scene`` with each pixel's own number of samples, ``counts`` ``(H, W)`` (integers >= 2): what an
+    adaptive sampler asks of the renderer.
+
+    The distinct counts ``c_1 < c_2 < …`` are rendered as passes of ``c_1``, ``c_2 - c_1``, … samples (split at
+    ``pass_spp``, seeded as :func:`render_frame`'s passes from ``first_pass`` on), and a pixel adds up the passes up
+    to its own count: so a pixel of count ``c`` is exactly that pixel of :func:`render_frame` with the same passes
+    (``render_frame(scene, c, seed, pass_spp=...)`` where the counts are multiples of ``pass_spp``), its mean and
+    the variances of its mean. Mitsuba renders whole frames, so the wall time is that of ``counts.max()`` samples
+    everywhere (``renderTimeSeconds``). The frame has the :data:`~kpcn.io.SAMPLE_COUNT` layer; its ``spp`` is the
+    mean count, rounded. Other arguments as :func:`render_frame`.
+
+    Raises:
+        ValueError: ``counts`` is not 2-D integers >= 2, or not the film's size.
+    """
+    n = np.asarray(counts)
+    if n.ndim != 2 or n.size == 0 or not np.all(np.isfinite(n)) or np.any(n != np.round(n)) or n.min() < 2:
+        raise ValueError(f"render_sample_map: counts must be a 2-D map of integers >= 2 (variances need two "
+                         f"samples), got shape {n.shape}" + (f", least {n.min()}" if n.size else ""))
+    n = n.astype(np.int64)
+    mi, mi_scene, name, integrator = _setup(scene, resolution, params, loaded, max_depth, False)
+    film = tuple(int(v) for v in mi_scene.sensors()[0].film().crop_size())[::-1]
+    if film != n.shape:
+        raise ValueError(f"render_sample_map: counts are {n.shape[0]}x{n.shape[1]} (rows x columns), the film "
+                         f"{film[0]}x{film[1]}")
+    acc, seconds, done, index = None, 0.0, 0, first_pass
+    for level in np.unique(n):
+        take = (n >= level)[..., None]
+        for k, arr, dt in _passes(mi, mi_scene, integrator, _pass_sizes(int(level) - done, pass_spp), seed, role,
+                                  index):
+            acc = np.where(take, arr * k, 0.0) if acc is None else acc + np.where(take, arr * k, 0.0)
+            seconds += dt
+            index += 1
+        done = int(level)
+    layers = _layers(acc / n[..., None], n[..., None].astype(np.float64))
+    layers[SAMPLE_COUNT] = n[..., None].astype(np.float32)
+    meta = _meta(int(max(round(float(n.mean())), 1)), seconds, seed, name)
+    return Frame(layers, meta)
+
+
+def _setup(scene, resolution, params, loaded, max_depth: int, albedo_only: bool):
+    mi = ensure_variant()
+    mi_scene, name, _ = loaded or load_scene(scene, resolution, params)
+    integrator = mi.load_dict({"type": "kpcn_split", "max_depth": int(max_depth), "albedo_only": bool(albedo_only)})
+    return mi, mi_scene, name, integrator
+
+
+def _pass_sizes(spp: int, pass_spp: int) -> list[int]:
+    sizes, left = [], int(spp)
     while left > 0:
-        passes.append(min(pass_spp, left))
-        left -= passes[-1]
-    acc = None
-    t0 = time.perf_counter()
-    for i, n in enumerate(passes):
+        sizes.append(min(int(pass_spp), left))
+        left -= sizes[-1]
+    return sizes
+
+
+def _passes(mi, mi_scene, integrator, sizes, seed: int, role: int, first_pass: int):
+    """Each pass ``(samples, film (H, W, C) float64: the mean and second-moment channels, seconds)``."""
+    n_ch = 3 + sum(c for _, c in aov_layout())
+    for i, n in enumerate(sizes):
+        t0 = time.perf_counter()
         img = mi.render(mi_scene, integrator=integrator, spp=n, seed=pass_seed(seed, role, first_pass + i))
         arr = np.array(img, dtype=np.float64)
         if arr.shape[-1] != n_ch:
             raise RuntimeError(f"film returned {arr.shape[-1]} channels, expected {n_ch}")
-        acc = arr * n if acc is None else acc + arr * n
-    seconds = time.perf_counter() - t0
-    acc /= spp
+        yield n, arr, time.perf_counter() - t0
 
+
+def _layers(acc: np.ndarray, n) -> dict[str, np.ndarray]:
+    """The layers and their variances of the mean from the per-sample means ``acc`` of ``n`` samples (a number or
+    ``(H, W, 1)``)."""
     raw: dict[str, np.ndarray] = {}
     c0 = 0
+    layout = [("color", 3)] + aov_layout()
     for layer, c in layout:
         raw[layer] = acc[..., c0 : c0 + c]
         c0 += c
     layers = {layer: raw[layer].astype(np.float32) for layer, _ in layout if not layer.endswith("_m2")}
     for layer, _ in MOMENT2:
-        var = (raw[f"{layer}_m2"] - raw[layer] ** 2) / (spp - 1)
+        var = (raw[f"{layer}_m2"] - raw[layer] ** 2) / (n - 1)
         layers[f"{layer}Variance"] = np.maximum(var, 0.0).astype(np.float32)
-    meta = {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name),
+    return layers
+
+
+def _meta(spp: int, seconds: float, seed: int, name) -> dict:
+    return {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name),
             "albedoRevision": ALBEDO_REVISION, "normalRevision": NORMAL_REVISION}
-    return Frame(layers, meta)
 
 
 def render_to_exr(scene: Any, out: str | os.PathLike, spp: int, seed: int = 0, *,
