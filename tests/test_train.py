@@ -509,6 +509,26 @@ def test_init_extend_adds_unet_band_gains(tiny_dataset, tmp_path, render):
     assert (c - d).abs().max() > 1e-3
 
 
+@pytest.mark.parametrize("others", [dict(albedo_kernel=3), dict(radiance_mix=True), dict(albedo_kernel=3,
+                                                                                     radiance_mix=True)])
+def test_init_extend_adds_band_gains_before_a_heads_later_rows(tiny_dataset, tmp_path, render, others):
+    """The gains sit between a head's blend and its albedo kernel or mixing weight: added to a file that has those,
+    they go in their place (not at the head's end), so the model still denoises as the file does."""
+    from kpcn.inference import load_model
+
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "f", dict(band_gain=False, **others)), progress=False)
+    src = tmp_path / "f" / "model.safetensors"
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "g", dict(band_gain=True, **others), init=str(src),
+                         init_extend=True, lr=1e-12, stage1_steps=1), progress=False)
+    plain, gained = load_model(str(src), device="cpu"), load_model(str(tmp_path / "g" / "model.safetensors"),
+                                                                    device="cpu")
+    assert gained.diffuse.head.out_channels == plain.diffuse.head.out_channels + 1
+    x = _denoises_alike(plain, gained, render)
+    with torch.no_grad():
+        ks = gained.diffuse.kernels(x)
+    torch.testing.assert_close(ks.gains[0], torch.ones_like(ks.gains[0]), rtol=0, atol=1e-6)
+
+
 def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     """``deep_blocks`` added to a trained U-Net with ``train.init_extend``: the model denoises a real render as the
     file does (each block's second conv starts at zero); the blocks are live (the loss has a gradient on that

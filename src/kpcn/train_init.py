@@ -63,6 +63,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
         groups = model.channel_groups()
         source_groups = source.channel_groups() if groups else None
         state = _resize_kernels(state, source, model, path, cfg.train.init_prune)
+        state = _realign_heads(state, source, model)
         # on the CPU, where the file was read: the model may already sit on a GPU
         state = _extend(state, {k: v.detach().cpu() for k, v in model.state_dict().items()}, path, groups,
                         source_groups, prune=cfg.train.init_prune)
@@ -104,6 +105,50 @@ def _resize_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module
                 v = out[f"{b}.head.{p}"]
                 out[f"{b}.head.{p}"] = torch.cat([v[:at], _resized_taps(v[at:at + ka_s * ka_s], ka_s, ka_m, p, prune,
                                                                         path, b, "albedo"), v[at + ka_s * ka_s:]])
+    return out
+
+
+def _head_segments(branch, level: int) -> tuple[int, int, int, int] | None:
+    """A U-Net branch's kernel head at ``level`` as its row counts: kernel logits, blend (α, and β with band gains),
+    albedo kernel and gate, mixing weight; None where the branch has no such head."""
+    cfg = getattr(branch, "cfg", None)
+    if cfg is None or not hasattr(branch, "head_layout") or level >= cfg.kernel_scales:
+        return None
+    if level == 0:
+        return tuple(branch.head_layout)
+    blend = (2 if cfg.band_gain else 1) if level < cfg.kernel_scales - 1 else 0
+    return (cfg.level_kernel(level) ** 2, blend, 0, branch.mix)
+
+
+def _realign_heads(state: dict, source: torch.nn.Module, model: torch.nn.Module) -> dict:
+    """Each U-Net kernel head whose segments (:func:`_head_segments`) the model has more of than the file (a band
+    gain after the blend, a blend on a level that gained a coarser one) with the file's rows moved to their
+    segment's start and the new rows in place: weight 0, the model's own initial bias (a gain's 0: β = 1). Rows
+    added at a head's end need nothing (:func:`_extend` pads them), but a gain added before an albedo kernel or a
+    mixing weight would otherwise shift those rows. Runs after :func:`_resize_kernels` (the logits are the model's
+    size by then, and a resized albedo kernel too)."""
+    target = model.state_dict()
+    out = dict(state)
+    for b in getattr(model, "branches", ()):
+        src, dst = getattr(source, b, None), getattr(model, b, None)
+        for level in range(getattr(getattr(src, "cfg", None), "kernel_scales", 0)):
+            have, want = _head_segments(src, level), _head_segments(dst, level)
+            if have is None or want is None:
+                continue
+            have = (want[0], have[1], want[2] if have[2] else 0, have[3])  # as _resize_kernels left them
+            if have == want or any(h > w for h, w in zip(have, want)):
+                continue  # the same rows, or a cut (for _extend to refuse)
+            name = f"{b}.head" if level == 0 else f"{b}.heads.{level - 1}"
+            rows = torch.cat([torch.arange(h) + sum(want[:i]) for i, h in enumerate(have)])
+            for p in ("weight", "bias"):
+                key, v = f"{name}.{p}", out[f"{name}.{p}"]
+                if key not in target or v.shape[0] != sum(have):
+                    continue
+                t = target[key]
+                w = t.detach().clone().to(v.dtype) if p == "bias" else torch.zeros((t.shape[0],) + tuple(v.shape[1:]),
+                                                                                   dtype=v.dtype)
+                w[rows] = v
+                out[key] = w
     return out
 
 
