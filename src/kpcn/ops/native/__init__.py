@@ -127,10 +127,16 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     return lib, f"loaded {target}"
 
 
+_UNSET = object()
+
+
 def library() -> ctypes.CDLL | None:
     """The compiled library, built on the first call (None: not available; :func:`status` says why)."""
     if not enabled():
         return None
+    lib = _state.get("lib", _UNSET)  # built (or failed) already: no lock on the hot path, one atomic read
+    if lib is not _UNSET:
+        return lib
     with _lock:
         if "lib" not in _state:
             lib, why = _build()
