@@ -2,8 +2,9 @@
 # One short GPU lease (a bare machine, no network, one command of at most 10 minutes): render fresh procedural
 # scenes with Mitsuba's CUDA variant (PROCS worker loops, none started after RENDER_S), then fine-tune the wide
 # U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
-# configs/unet_wide64e_gpu.yaml, the shipped default's recipe; INIT: the weights it starts from, default
-# unet_kpcn:wide64f, the default's file; LR: the peak rate). FIRST: the first scene seed; earlier leases rendered from
+# configs/unet_wide64n.yaml, the shipped default's recipe; INIT: the weights it starts from, default
+# unet_kpcn:wide64n, the default's file; LR: the peak rate; SPP_MIX: data.spp_mix, the share of patches whose spp
+# varies per pixel, default 0). FIRST: the first scene seed; earlier leases rendered from
 # 50001 (sixteenth session), 60001 (twenty-sixth and thirty-first) and 71001 (thirty-fifth): pass a fresh one.
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
@@ -77,12 +78,13 @@ from kpcn.render import dataset_status
 w = Path(sys.argv[1])
 roots = sorted(str(p) for p in (w / "d").glob("s*") if dataset_status(p).complete)
 print(len(roots), "complete scenes", flush=True)
-base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64e_gpu.yaml")))
+base = yaml.safe_load(open(os.environ.get("BASE", "configs/unet_wide64n.yaml")))
 d = base["data"]
 d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / "store"), workers=8,
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)),
-         spp_by_root={}, balance_spp=False)  # every fresh scene at every spp
-base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64f"), init_extend=True, init_reopen=[],
+         spp_by_root={}, balance_spp=False,  # every fresh scene at every spp
+         spp_mix=float(os.environ.get("SPP_MIX", 0)))
+base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64n"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
 yaml.safe_dump(base, open(w / "cfg.yaml", "w"), sort_keys=False)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Before a GPU lease, whose tree (tracked files and the carried .gpu) must stay under 64 MiB, move every shipped
 # weights file but the one the run starts from out of the tree; after it, move them back:
-#   bash scripts/gpu_weights.sh hold [KEEP]     # KEEP: a file name in src/kpcn/weights (default unet_wide64f.safetensors, the default's)
+#   bash scripts/gpu_weights.sh hold [KEEP]     # KEEP: a file name in src/kpcn/weights (default unet_wide64n.safetensors, the default's)
 #   bash scripts/gpu_weights.sh restore
 # HOLD (default /tmp/kpcn_weights_hold) is where they wait; restore refuses to overwrite a file in the tree.
 set -eu
@@ -9,7 +9,7 @@ HOLD=${HOLD:-/tmp/kpcn_weights_hold}
 DIR=$(cd "$(dirname "$0")/.." && pwd)/src/kpcn/weights
 case "${1:-}" in
   hold)
-    KEEP=${2:-unet_wide64f.safetensors}
+    KEEP=${2:-unet_wide64n.safetensors}
     [ -f "$DIR/$KEEP" ] || { echo "gpu_weights: no $DIR/$KEEP" >&2; exit 2; }
     mkdir -p "$HOLD"
     for f in "$DIR"/*.safetensors; do
