@@ -109,15 +109,12 @@ def _resize_kernels(state: dict, source: torch.nn.Module, model: torch.nn.Module
 
 
 def _head_segments(branch, level: int) -> tuple[int, int, int, int] | None:
-    """A U-Net branch's kernel head at ``level`` as its row counts: kernel logits, blend (α, and β with band gains),
-    albedo kernel and gate, mixing weight; None where the branch has no such head."""
+    """A U-Net branch's :meth:`~kpcn.models.unet_branch.UNetBranch.head_segments` at ``level``; None where the
+    branch has no such head."""
     cfg = getattr(branch, "cfg", None)
-    if cfg is None or not hasattr(branch, "head_layout") or level >= cfg.kernel_scales:
+    if not hasattr(branch, "head_segments") or level >= cfg.kernel_scales:
         return None
-    if level == 0:
-        return tuple(branch.head_layout)
-    blend = (2 if cfg.band_gain else 1) if level < cfg.kernel_scales - 1 else 0
-    return (cfg.level_kernel(level) ** 2, blend, 0, branch.mix)
+    return branch.head_segments(level)
 
 
 def _realign_heads(state: dict, source: torch.nn.Module, model: torch.nn.Module) -> dict:

@@ -89,13 +89,12 @@ class UNetBranch(nn.Module):
         if off:
             gk = cfg.guide_kernel
             self.guide = Conv1x1(c_in, cfg.guide_channels, 1) if gk == 1 else nn.Conv2d(c_in, cfg.guide_channels, gk)
-        blend = 2 if cfg.band_gain else 1  # channels after the logits of a level that blends: α (and β)
         ka = self.albedo_kernel
         #: ``radiance_mix``: every level's head ends in one more channel, the logit of its mixing weight γ
         self.mix = int(cfg.radiance_mix)
         #: channels of the full-resolution head: the kernel logits, the blend (α, β), the albedo logits and gate,
         #: the mixing weight's logit
-        self.head_layout = (k * k, blend if n > 1 else 0, ka * ka + 1 if ka else 0, self.mix)
+        self.head_layout = self.head_segments(0)
         self.head = self._make_head(w[0] + (cfg.guide_channels if off else 0), sum(self.head_layout),
                                     GuidedHead if off else Conv1x1)
         if ka:
@@ -105,12 +104,21 @@ class UNetBranch(nn.Module):
         self.apply_albedo = KernelApply(ka, "replicate") if ka else None
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         kc = cfg.level_kernel(1)
-        self.heads = nn.ModuleList(self._make_head(w[lv - off], kc * kc + (blend if lv < n - 1 else 0) + self.mix,
-                                                   k=kc) for lv in range(1, n))
+        self.heads = nn.ModuleList(self._make_head(w[lv - off], sum(self.head_segments(lv)), k=kc)
+                                   for lv in range(1, n))
         self.apply_kernels = KernelApply(k, "replicate") if n == 1 else \
             MultiScaleApply(k, cfg.alignment, radiance=cfg.radiance_pool, coarse_kernel=kc)
         #: the conv stack's dtype (None: float32); see :meth:`UNetKPCN.set_compute_dtype`
         self.compute_dtype: torch.dtype | None = None
+
+    def head_segments(self, level: int) -> tuple[int, int, int, int]:
+        """The output channels of kernel level ``level``'s head, in order: the kernel logits, the blend (α, and β
+        with ``band_gain``; none on the coarsest level), the albedo kernel's logits and gate (level 0 only), the
+        mixing weight's logit (``radiance_mix``)."""
+        cfg, ka = self.cfg, self.albedo_kernel
+        blend = (2 if cfg.band_gain else 1) if level < cfg.kernel_scales - 1 else 0
+        albedo = ka * ka + 1 if ka and level == 0 else 0
+        return (cfg.level_kernel(level) ** 2, blend, albedo, self.mix)
 
     def _lowp(self, t: torch.Tensor):
         """Autocast to :attr:`compute_dtype` around the encoder and decoder convs (a no-op in float32)."""
