@@ -83,8 +83,7 @@ def test_spp_mix_takes_each_pixel_from_one_of_two_inputs_of_the_scene(tiny_datas
         if pairs[f].spp == CONVERGED_SPP:
             assert all(torch.equal(got[k], own[k]) for k in own)
             continue
-        other = PatchDataset([pairs[mixed.partners[f][0]]], **kw)
-        theirs = other._crop(0, *mixed.index[idx][1:])
+        theirs = plain._crop(mixed.partners[f][0], *mixed.index[idx][1:])  # the partner's pixels at the same place
         from_own = (got["noisy_color"] == own["noisy_color"]).all(0)
         from_other = (got["noisy_color"] == theirs["noisy_color"]).all(0)
         assert bool((from_own | from_other).all())
