@@ -406,6 +406,32 @@ def test_frames_whose_spp_varies_are_measured_for_every_method(report):
     assert r["relmse"] == pytest.approx(r["input_relmse"], rel=1e-6)
 
 
+def test_the_varying_spp_table_reuses_the_ladders_results(report):
+    # the report keeps each method's results on the two uniform inputs from the ladder (evaluate_scene's
+    # outputs) and denoises only the composite again: the same rows, one call a method instead of three
+    cfg, _ = report
+    spp = sorted({nearest_spp(cfg.spp, s) for s in cfg.mixed_spp})
+    sr = _scene_renders(cfg, cfg.scenes[0])
+    seen = []
+
+    def blur(fr):  # a method whose result depends on the frame (a 3x3 box of the colour)
+        seen.append(fr)
+        c = np.pad(fr["color"], ((1, 1), (1, 1), (0, 0)), mode="edge")
+        h, w = fr["color"].shape[:2]
+        return sum(c[i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
+
+    m = Method("blur", blur, warmed_up=True)  # no untimed warm-up call to count
+    alone = evaluate_mixed(sr, [m], spp)
+    assert len(seen) == 3
+    outputs = {s: {} for s in spp}
+    evaluate_scene(sr, [m], outputs=outputs)
+    assert sorted(outputs) == spp and all(list(o) == ["blur"] for o in outputs.values())
+    seen.clear()
+    reused = evaluate_mixed(sr, [m], spp, outputs)
+    assert len(seen) == 1 and seen[0] is not sr.inputs[spp[0]] and seen[0] is not sr.inputs[spp[1]]
+    assert reused == alone
+
+
 def test_frames_worse_than_their_input_are_all_listed(report):
     cfg, res = report
     mc = {(r["scene"], r["spp"]): r["relmse"] for r in res.rows if r["method"] == MC}

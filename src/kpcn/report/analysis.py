@@ -14,7 +14,7 @@ from .methods import Method
 
 
 def evaluate_scene(sr: SceneRenders, methods: Sequence[Method], keep_spp: int | None = None,
-                   floor_factor: float = 3.0):
+                   floor_factor: float = 3.0, outputs: dict[int, dict[str, np.ndarray]] | None = None):
     """Rows (dicts with :data:`CSV_FIELDS`) for raw MC and every method at every spp of ``sr``.
 
     Every row carries ``ref_floor`` (:func:`reference_floor` of the scene's
@@ -23,7 +23,9 @@ def evaluate_scene(sr: SceneRenders, methods: Sequence[Method], keep_spp: int | 
     error and the row does not tell how good the image is.
 
     Returns ``(rows, images)`` where ``images[method]`` is the ``(H, W, 3)`` result
-    at ``keep_spp`` (for the contact sheet), including ``"mc"`` and ``"reference"``.
+    at ``keep_spp`` (for the contact sheet), including ``"mc"`` and ``"reference"``. ``outputs``: for each spp it
+    has a key for, its dict gets every method's result there (``outputs[spp][method name]``), for a later table on
+    the same inputs (:func:`kpcn.report.checks.evaluate_mixed`) not to denoise them again.
     """
     ref = sr.reference["color"]
     h, w = sr.reference.shape
@@ -44,6 +46,8 @@ def evaluate_scene(sr: SceneRenders, methods: Sequence[Method], keep_spp: int | 
             rows.append(row)
             if spp == keep_spp:
                 images[name] = img
+            if outputs is not None and spp in outputs and name != MC:
+                outputs[spp][name] = img
     return rows, images
 
 

@@ -19,7 +19,7 @@
 from __future__ import annotations
 
 import zlib
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -135,11 +135,14 @@ def mixed_mask(label: str, shape: tuple[int, int]) -> np.ndarray:
     return region_mask(shape, np.random.default_rng(zlib.crc32(label.encode())), cell=cell, quantile=0.5)
 
 
-def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[int]) -> list[dict]:
+def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[int],
+                   uniform: Mapping[int, Mapping[str, np.ndarray]] | None = None) -> list[dict]:
     """One row per method: the scene's ``spp[0]`` input inside :func:`mixed_mask`'s regions and its ``spp[1]``
     input outside (:func:`kpcn.render.mix_frames`, with its sample-count layer), denoised; its relMSE in each
     region (``relmse_low``, ``relmse_high``) beside the same method's on the uniform inputs there
-    (``uniform_relmse_*``), its whole-frame relMSE, PSNR and SSIM, and the composite input's relMSE."""
+    (``uniform_relmse_*``), its whole-frame relMSE, PSNR and SSIM, and the composite input's relMSE.
+    ``uniform[spp][method name]``: a method's results on the uniform inputs where the caller has them
+    (:func:`kpcn.report.analysis.evaluate_scene`'s ``outputs``); the others are denoised here."""
     lo, hi = (sr.inputs.get(int(s)) for s in spp)
     if lo is None or hi is None:
         return []
@@ -147,6 +150,10 @@ def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[in
     low = mixed_mask(sr.label, lo.shape)
     mixed = mix_frames(lo, hi, low)
     inp = relmse(mixed["color"], ref)
+    def result(m: Method, s: int, frame):
+        have = (uniform or {}).get(int(s), {}).get(m.name)
+        return have if have is not None else m(frame)[0]
+
     out = []
     for m in methods:
         img = m(mixed)[0]
@@ -154,9 +161,9 @@ def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[in
         out.append({"scene": sr.label, "method": m.name, "spp_low": int(spp[0]), "spp_high": int(spp[1]),
                     "low_share": float(low.mean()), **{k: met[k] for k in ("relmse", "psnr", "ssim")},
                     "relmse_low": _region_relmse(img, ref, low),
-                    "uniform_relmse_low": _region_relmse(m(lo)[0], ref, low),
+                    "uniform_relmse_low": _region_relmse(result(m, spp[0], lo), ref, low),
                     "relmse_high": _region_relmse(img, ref, ~low),
-                    "uniform_relmse_high": _region_relmse(m(hi)[0], ref, ~low),
+                    "uniform_relmse_high": _region_relmse(result(m, spp[1], hi), ref, ~low),
                     "input_relmse": inp, "worse_than_input": met["relmse"] > inp})
     return out
 

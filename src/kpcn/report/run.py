@@ -173,12 +173,13 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         rendered += sr.rendered
         if sr.rendered:
             time.sleep(SETTLE_SECONDS)
-        r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp, floor_factor=cfg.floor_factor)
+        uniform = {int(s): {} for s in mixed_spp} if len(mixed_spp) == 2 else None  # kept for the mixed table
+        r, imgs = evaluate_scene(sr, methods, keep_spp=contact_spp, floor_factor=cfg.floor_factor, outputs=uniform)
         rows += r
         converged += evaluate_converged(sr, methods, cfg.floor_factor)
         exposure += evaluate_exposure(sr, methods, exposure_spp, cfg.exposure_factors, r)
         if len(mixed_spp) == 2:
-            mixed += evaluate_mixed(sr, methods, mixed_spp)
+            mixed += evaluate_mixed(sr, methods, mixed_spp, uniform)
         images[sr.label] = imgs
         say(f"evaluated {sr.label}")
 
