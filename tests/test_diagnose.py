@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kpcn.io import write_exr
-from kpcn.report.diagnose import diagnose_frame, find_renders, main
+from kpcn.report.diagnose import diagnose_frame, find_renders, geometric_edges, main
 
 RES = (48, 48)
 
@@ -34,6 +34,8 @@ def test_a_scene_without_specular_light_has_only_diffuse_error(net, render):
     assert math.isnan(row["specular ratio"]) and 0.5 < row["diffuse ratio"] < 1.5
     assert row["albedo=ref"] < row["relmse"] and row["psnr albedo=ref"] > row["psnr"]
     assert row["low band"] > 0 and row["high band"] > 0
+    # the error split at the reference's geometric edges: both parts carry some, on a share of the frame
+    assert 0 < row["edge share"] < 0.6 and row["edge band"] > 0 and row["off-edge band"] > 0
 
 
 def test_the_reference_as_input_is_diagnosed_close_to_itself(net, render):
@@ -43,6 +45,29 @@ def test_the_reference_as_input_is_diagnosed_close_to_itself(net, render):
     noisy_row = diagnose_frame(net, render("test:glossy", spp=2, seed=1, resolution=RES), ref)["model"]
     assert row["relmse"] < noisy_row["relmse"] / 3
     assert abs(row["ratio"] - 1) < 0.02 and abs(row["specular ratio"] - 1) < 0.05
+
+
+def test_geometric_edges_mark_where_the_normal_turns_or_the_depth_jumps():
+    """Pure geometry: a floor (normal +y) meeting a wall (normal +z) along column 5, and on the floor a step in
+    depth along row 3 (a nearer object with the floor's normal): both pixels of each changing pair are marked,
+    nothing else; a turn or a jump below the thresholds is not an edge."""
+    n = np.zeros((8, 10, 3))
+    n[:, :5, 1] = 1
+    n[:, 5:, 2] = 1
+    z = np.full((8, 10), 4.0)
+    z[4:, :5] = 2.0
+    e = geometric_edges(n, z)
+    expect = np.zeros((8, 10), bool)
+    expect[:, 4:6] = True
+    expect[3:5, :5] = True
+    assert np.array_equal(e, expect)
+    tilt = n.copy()
+    tilt[:, 5:] = [0, 0.95, 0.31]  # about 18 degrees from the floor's normal: sum of |differences| 0.36
+    assert geometric_edges(tilt, np.full((8, 10), 4.0))[:, 4:6].all()
+    assert not geometric_edges(tilt, np.full((8, 10), 4.0), turn=0.5).any()
+    # one surface whose depth grows smoothly across the frame (a receding floor) has none
+    ramp = np.broadcast_to(4.0 + 0.05 * np.arange(10), (8, 10))
+    assert not geometric_edges(np.broadcast_to(n[:, :1], n.shape), ramp).any()
 
 
 def test_cli_reads_a_renders_folder_and_refuses_an_empty_one(net, render, tmp_path, capsys):

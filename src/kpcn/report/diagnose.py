@@ -8,8 +8,11 @@ reference beside the same output with one of its parts replaced by the reference
   remodulates with (what the albedo's own noise costs: a 4-spp albedo is the mean of 4 sub-pixel texture samples);
 
 and how bright the output is against the reference (mean ratios, per part), and its error in PSNR's tone map split
-into a low band (blurred by a Gaussian of ``--sigma`` pixels) and the rest (MSE of each). OIDN, as the report runs it,
-gets the same rows where it is installed.
+two ways: into a low band (blurred by a Gaussian of ``--sigma`` pixels) and the rest (MSE of each), and into the
+pixels at most ``--edge-px`` pixels from a geometric edge of the reference (:func:`geometric_edges`: where its normal
+turns or its depth jumps) and the others (each part's sum over the frame's pixel count, so the two add up to the
+MSE; ``edge share`` is the edge pixels' share of the frame). OIDN, as the report runs it, gets the same rows where it
+is installed.
 A diagnosis, not a figure of merit: replacing a part by the reference's is an oracle no denoiser has.
 
 Example::
@@ -26,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import distance_transform_edt, gaussian_filter
 
 from ..data import pair_tensors
 from ..inputs import radiance_of, split_reconstruct
@@ -34,13 +37,13 @@ from ..io.frame import Frame
 from ..io.read import read_exr
 from ..metrics import psnr, relmse, tonemap
 
-__all__ = ["diagnose_frame", "find_renders", "main"]
+__all__ = ["diagnose_frame", "find_renders", "geometric_edges", "main"]
 
 #: the columns of a model's row, in order (relMSE each; psnr the output's; the bands tone-mapped MSE; ratios
 #: mean(output) / mean(reference))
 MODEL_KEYS = ("relmse", "psnr", "diffuse=ref", "specular=ref", "albedo=ref", "psnr albedo=ref", "low band",
-              "high band", "ratio", "diffuse ratio", "specular ratio")
-OIDN_KEYS = ("relmse", "psnr", "low band", "high band", "ratio")
+              "high band", "edge band", "off-edge band", "edge share", "ratio", "diffuse ratio", "specular ratio")
+OIDN_KEYS = ("relmse", "psnr", "low band", "high band", "edge band", "off-edge band", "ratio")
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
@@ -56,17 +59,48 @@ def _bands(x: np.ndarray, ref: np.ndarray, sigma: float) -> tuple[float, float]:
     return float(np.mean(low**2)), float(np.mean((e - low) ** 2))
 
 
+def geometric_edges(normal: np.ndarray, depth: np.ndarray, turn: float = 0.3, jump: float = 0.05) -> np.ndarray:
+    """``(H, W)`` bool: the pixels where the geometry changes between a pixel and its right or lower neighbour: the
+    normal ``(H, W, 3)`` by more than ``turn`` (the sum of the absolute component differences; 0.3 is about 17°) or
+    the depth ``(H, W[, 1])`` by more than ``jump`` of the pixel's own (an occlusion edge on a surface of one normal).
+    Both pixels of such a pair are marked. Meant for a reference's clean layers."""
+    n = np.asarray(normal, dtype=np.float64)
+    z = np.asarray(depth, dtype=np.float64)
+    z = z[..., 0] if z.ndim == 3 else z
+    edge = np.zeros(z.shape, dtype=bool)
+    for axis in (0, 1):
+        dn = np.abs(np.diff(n, axis=axis)).sum(-1)
+        a = np.take(z, range(z.shape[axis] - 1), axis=axis)
+        b = np.take(z, range(1, z.shape[axis]), axis=axis)
+        dz = np.abs(b - a) > jump * np.maximum(np.minimum(a, b), 1e-6)
+        step = (dn > turn) | dz
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+        edge[tuple(lo)] |= step
+        edge[tuple(hi)] |= step
+    return edge
+
+
+def _edge_bands(x: np.ndarray, ref: np.ndarray, near: np.ndarray) -> tuple[float, float]:
+    """The tone-mapped squared error summed over the pixels ``near`` (``(H, W)`` bool) and over the others, each
+    over the frame's pixel count (so they add up to the MSE)."""
+    e2 = ((tonemap(x) - tonemap(ref)) ** 2).mean(-1)
+    return float((e2 * near).mean()), float((e2 * ~near).mean())
+
+
 def _ratio(x: np.ndarray, ref: np.ndarray) -> float:
     m = float(ref.mean())
     return float(x.mean()) / m if m > 0 else float("nan")
 
 
 def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
-                   oidn: bool = False) -> dict[str, dict[str, float]]:
+                   oidn: bool = False, edge_px: float = 1.0) -> dict[str, dict[str, float]]:
     """``{"model": {key: value for MODEL_KEYS}, "oidn": {...}}`` for one noisy frame and its reference.
 
     ``net`` a model with a ``diffuse`` / ``specular`` split input spec (``kpcn_split``, ``split_novar``); ``oidn``:
-    also OIDN's row (the report's :func:`~kpcn.report.methods.oidn_method`)."""
+    also OIDN's row (the report's :func:`~kpcn.report.methods.oidn_method`); ``edge_px``: the edge band's reach
+    from the reference's :func:`geometric_edges` (0: the edge pixels alone)."""
     spec = net.input_spec
     if set(spec.branches) != {"diffuse", "specular"}:
         raise ValueError(f"diagnose: needs a model with the diffuse/specular split; {spec.name!r} has {spec.branches}")
@@ -81,10 +115,14 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
     ref_albedo = torch.as_tensor(np.ascontiguousarray(ref["albedo"])).permute(2, 0, 1)[None].float()
     remod = _hwc(split_reconstruct({"diffuse": out["diffuse"], "specular": out["specular"]}, {"albedo": ref_albedo}))
     low, high = _bands(colour, target, sigma)
+    edges = geometric_edges(ref["normal"], ref["depth"])
+    near = distance_transform_edt(~edges) <= edge_px if edges.any() else edges
+    on_edge, off_edge = _edge_bands(colour, target, near)
     row = {"relmse": relmse(colour, target), "psnr": psnr(colour, target),
            "diffuse=ref": relmse(ref_d + spec_rad, target), "specular=ref": relmse(diff_rad + ref_s, target),
            "albedo=ref": relmse(remod, target), "psnr albedo=ref": psnr(remod, target), "low band": low,
-           "high band": high, "ratio": _ratio(colour, target), "diffuse ratio": _ratio(diff_rad, ref_d),
+           "high band": high, "edge band": on_edge, "off-edge band": off_edge, "edge share": float(near.mean()),
+           "ratio": _ratio(colour, target), "diffuse ratio": _ratio(diff_rad, ref_d),
            "specular ratio": _ratio(spec_rad, ref_s)}
     res = {"model": row}
     if oidn:
@@ -92,8 +130,9 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
 
         o = oidn_method().fn(noisy)
         low, high = _bands(o, target, sigma)
+        on_edge, off_edge = _edge_bands(o, target, near)
         res["oidn"] = {"relmse": relmse(o, target), "psnr": psnr(o, target), "low band": low, "high band": high,
-                       "ratio": _ratio(o, target)}
+                       "edge band": on_edge, "off-edge band": off_edge, "ratio": _ratio(o, target)}
     return res
 
 
@@ -140,7 +179,7 @@ def _mean(values) -> float:
 
 
 def _line(label: str, row: dict, keys) -> str:
-    cells = [f"{row[k]:.3f}" if k.startswith("psnr") else f"{row[k]:.4f}" if "ratio" in k
+    cells = [f"{row[k]:.3f}" if k.startswith("psnr") else f"{row[k]:.4f}" if "ratio" in k or "share" in k
              else f"{row[k]:.3e}" if "band" in k else f"{row[k]:.6f}" for k in keys]
     return f"| {label} | " + " | ".join(cells) + " |"
 
@@ -151,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default=None, help="weights file or model:tag (default: the shipped default)")
     p.add_argument("--spp", type=int, nargs="+", default=[4])
     p.add_argument("--sigma", type=float, default=3.0, help="the low band's Gaussian (pixels)")
+    p.add_argument("--edge-px", type=float, default=1.0,
+                   help="the edge band: pixels at most this far from a geometric edge of the reference (default 1)")
     p.add_argument("--no-oidn", action="store_true")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
@@ -170,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
             if path is None:
                 print(f"| {sf.scene} | no {spp}-spp input |")
                 continue
-            res = diagnose_frame(net, read_exr(path), read_exr(sf.reference()), args.sigma, oidn)
+            res = diagnose_frame(net, read_exr(path), read_exr(sf.reference()), args.sigma, oidn, args.edge_px)
             rows.append((sf.scene, res))
             print(_line(sf.scene, res["model"], MODEL_KEYS))
         if not rows:
