@@ -203,7 +203,9 @@ class DenoiseBenchConfig:
         "help": "kpcn's element-wise kernels: native (kpcn.ops.native, compiled for this CPU where a C compiler is; "
                 "else the PyTorch paths), pytorch (KPCN_NATIVE=0); both: each model runs with each (rows labelled "
                 "model+kernels), the A/B of the native kernels in one run"})
-    tile: int | None = field(default=None, metadata={"help": "kpcn tile size (default: auto, the whole frame up to 1920x1080; --skip: 64)"})
+    tile: int | None = field(default=None, metadata={
+        "help": "kpcn tile size (default: auto, the whole frame up to 1920x1080, or 4096x4096 for a model that runs "
+                "in row bands; --skip: 64)"})
     scene: str = field(default="random:3", metadata={"help": "scene to render"})
     spp: int = field(default=4, metadata={"help": "samples per pixel of the rendered frames"})
     seed: int = 0

@@ -56,8 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="allow a .pt checkpoint that only full unpickling can load; unpickling runs any code "
                         "the file contains, so use this only for files you trust (kpcn's own files never need it)")
     p.add_argument("--tile", type=_tile_arg, default="auto",
-                   help="tile size in pixels, 0 = whole frame, auto = whole frame up to 1920x1080, "
-                        "else tiles of max(512, 4 x the model's halo) (default auto)")
+                   help="tile size in pixels, 0 = whole frame, auto = whole frame up to 1920x1080 (up to "
+                        "4096x4096 for a model that runs whole frames in row bands, as the default does), else "
+                        "tiles of max(512, 4 x the model's halo) (default auto)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto)")
     p.add_argument("--half", action="store_true", help="float16 autocast (CUDA only)")
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
