@@ -150,6 +150,7 @@ def evaluate_mixed(sr: SceneRenders, methods: Sequence[Method], spp: Sequence[in
     low = mixed_mask(sr.label, lo.shape)
     mixed = mix_frames(lo, hi, low)
     inp = relmse(mixed["color"], ref)
+
     def result(m: Method, s: int, frame):
         have = (uniform or {}).get(int(s), {}).get(m.name)
         return have if have is not None else m(frame)[0]

@@ -61,9 +61,9 @@ def _bands(x: np.ndarray, ref: np.ndarray, sigma: float) -> tuple[float, float]:
 
 def geometric_edges(normal: np.ndarray, depth: np.ndarray, turn: float = 0.3, jump: float = 0.05) -> np.ndarray:
     """``(H, W)`` bool: the pixels where the geometry changes between a pixel and its right or lower neighbour: the
-    normal ``(H, W, 3)`` by more than ``turn`` (the sum of the absolute component differences; 0.3 is about 17°) or
-    the depth ``(H, W[, 1])`` by more than ``jump`` of the pixel's own (an occlusion edge on a surface of one normal).
-    Both pixels of such a pair are marked. Meant for a reference's clean layers."""
+    normal ``(H, W, 3)`` by more than ``turn`` (the sum of the absolute component differences; 0.3: a turn of
+    10–17°, by its direction) or the depth ``(H, W[, 1])`` by more than ``jump`` of the pixel's own (an occlusion
+    edge on a surface of one normal). Both pixels of such a pair are marked. Meant for a reference's clean layers."""
     n = np.asarray(normal, dtype=np.float64)
     z = np.asarray(depth, dtype=np.float64)
     z = z[..., 0] if z.ndim == 3 else z
