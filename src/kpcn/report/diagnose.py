@@ -1,7 +1,8 @@
 """Where a split-input model's error comes from: ``python -m kpcn.report.diagnose``.
 
-On a report's cached renders (``<out>/<name>/renders``), for each scene and spp, a model's output against the
-reference beside the same output with one of its parts replaced by the reference's:
+On a report's cached renders (``<out>/<name>/renders``), for each scene and spp, a model's output (the network's,
+before the detail stage :func:`kpcn.denoise` runs after it, so the parts below add up) against the reference beside
+the same output with one of its parts replaced by the reference's:
 
 * ``diffuse=ref`` / ``specular=ref``: the branch's radiance replaced (what the other branch's error is);
 * ``albedo=ref``: the diffuse branch's output remodulated with the reference's albedo rather than the one the model
