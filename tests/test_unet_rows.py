@@ -20,7 +20,7 @@ from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
 from kpcn.models.kernel_heads import GuidedHead, _bounded_softmax, _softmax_weights
-from kpcn.models.layers import conv1x1, pool2, upsample2
+from kpcn.models.layers import conv1x1, pool2, upsample2, upsample2_guided
 from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
 
 FRAME_RES = (150, 117)  # width, height: neither a multiple of the alignment (16)
@@ -302,3 +302,58 @@ def test_small_frames_go_whole(frame, monkeypatch):
     assert inference.denoise_result(frame, _model(), device="cpu").stats.row_bands == 0
     monkeypatch.setattr(rows, "ROWS_MIN_PIXELS", w * h)
     assert inference.denoise_result(frame, _model(), device="cpu").stats.row_bands > 0
+
+
+def test_guided_upsampling_keeps_an_edge_and_is_bilinear_on_a_flat_guide():
+    """:func:`upsample2_guided`: with a constant guide the bilinear upsampling, whatever sigma; a value map with a
+    step where its guide (a normal turning 90°) steps keeps the step sharp, where bilinear upsampling spreads it
+    over two pixels; the weights are renormalised, so a constant stays constant; float64 gradcheck."""
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(2, 3, 5, 6, generator=g, dtype=torch.float64)
+    flat = torch.zeros(2, 3, 10, 12, dtype=torch.float64)
+    flat[:, 1] = 1
+    want = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    for sigma in (0.05, 1.0):
+        torch.testing.assert_close(upsample2_guided(x, flat, pool2(flat), sigma), want, rtol=0, atol=1e-12)
+    # a floor (normal +y) left of coarse column 3, a wall (+z) from it on; the value 0 on the floor, 1 on the wall
+    n = torch.zeros(1, 3, 8, 12, dtype=torch.float64)
+    n[:, 1, :, :6] = 1
+    n[:, 2, :, 6:] = 1
+    v = torch.zeros(1, 1, 4, 6, dtype=torch.float64)
+    v[..., 3:] = 1
+    sharp = upsample2_guided(v, n, pool2(n), 0.2)
+    blurred = upsample2(v)
+    assert torch.all(sharp[..., :6] < 1e-6) and torch.all(sharp[..., 6:] > 1 - 1e-6)
+    assert blurred[0, 0, 0, 5] == pytest.approx(0.25) and blurred[0, 0, 0, 6] == pytest.approx(0.75)
+    ones = torch.ones(1, 2, 4, 6, dtype=torch.float64)
+    rough = torch.randn(1, 3, 8, 12, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(upsample2_guided(ones, rough, pool2(rough), 0.3), torch.ones(1, 2, 8, 12,
+                                                                                       dtype=torch.float64))
+    xs = x[:1, :2].clone().requires_grad_()
+    gf = torch.randn(1, 3, 10, 12, generator=g, dtype=torch.float64).requires_grad_()
+    gc = torch.randn(1, 3, 5, 6, generator=g, dtype=torch.float64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b, c: upsample2_guided(a, b, c, 0.7), (xs, gf, gc))
+    with pytest.raises(ValueError, match="sigma"):
+        upsample2_guided(x, flat, pool2(flat), 0.0)
+    with pytest.raises(ValueError, match="must be"):
+        upsample2_guided(x, flat[..., :8, :], pool2(flat), 0.5)
+
+
+def test_combine_levels_guided_is_the_bilinear_blend_on_a_flat_guide():
+    """``combine_levels(..., guides, sigma)`` with a constant guide pyramid is the blend without one (both
+    upsamplings guided), and with a guide that has an edge it differs from it."""
+    from kpcn.models.kernel_heads import combine_levels
+
+    g = torch.Generator().manual_seed(6)
+    sizes = [(16, 24), (8, 12), (4, 6)]
+    f = [torch.rand(1, 3, h, w, generator=g, dtype=torch.float64) for h, w in sizes]
+    alphas = [torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) for h, w in sizes[:-1]] + [None]
+    gains = [torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) for h, w in sizes[:-1]] + [None]
+    flat = [torch.full((1, 3, h, w), 0.5, dtype=torch.float64) for h, w in sizes]
+    plain = combine_levels(f, alphas, gains)
+    torch.testing.assert_close(combine_levels(f, alphas, gains, flat, 0.3), plain, rtol=0, atol=1e-12)
+    edge = torch.zeros(1, 3, 16, 24, dtype=torch.float64)
+    edge[:, 1, :, :11] = 1
+    edge[:, 2, :, 11:] = 1
+    pyramid = [edge, pool2(edge), pool2(pool2(edge))]
+    assert (combine_levels(f, alphas, gains, pyramid, 0.3) - plain).abs().max() > 1e-3

@@ -9,6 +9,7 @@
   colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``);
 * :func:`pool2`, :func:`upsample2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool, a bilinear 2×
   upsampling and a 1×1 convolution written for the CPU's memory traffic (what the U-Net does at full resolution);
+  :func:`upsample2_guided`: the bilinear upsampling's taps weighted by a guide's similarity (joint bilateral);
 * :func:`relu_` (:class:`ReLU`): an in-place ReLU that is fast on bfloat16 tensors too;
 * :func:`up_cat_conv3x3`: a U-Net decoder's first convolution of ``[nearest_up2(coarse), skip]``
   without building either (a transposed convolution of the coarse input plus a convolution of the skip).
@@ -22,7 +23,7 @@ from torch import nn
 from ..inputs import get_input_spec, radiance_of
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "upsample2_guided", "conv1x1",
            "conv1x1_lowp", "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "UpAddConv", "relu_", "ReLU"]
 
@@ -152,6 +153,66 @@ def upsample2(x: torch.Tensor, context_rows: bool = False) -> torch.Tensor:
         torch.lerp(v[..., 1:], v[..., :-1], 0.25, out=even[..., 1:])
         torch.lerp(v[..., :-1], v[..., 1:], 0.25, out=odd[..., :-1])
     return out
+
+
+def _rows_taps(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two source rows of each output row of a 2× upsampling along dim -2 (``align_corners=False``, edges
+    repeated): ``(near, far)``, each ``(..., 2H, W)``: row ``2i`` reads ``i`` and ``i - 1``, row ``2i + 1`` ``i`` and
+    ``i + 1``."""
+    above = torch.cat([x[..., :1, :], x[..., :-1, :]], dim=-2)
+    below = torch.cat([x[..., 1:, :], x[..., -1:, :]], dim=-2)
+    near = x.repeat_interleave(2, dim=-2)
+    far = torch.stack((above, below), dim=-2).flatten(-3, -2)
+    return near, far
+
+
+def _taps(x: torch.Tensor) -> list[torch.Tensor]:
+    """The four source pixels of each output pixel of a bilinear 2× upsampling ``(B, C, H, W) -> (B, C, 2H, 2W)``,
+    in the order of :data:`_TAP_WEIGHTS`."""
+    out = []
+    for rows in _rows_taps(x):
+        near, far = _rows_taps(rows.transpose(-1, -2))
+        out += [near.transpose(-1, -2), far.transpose(-1, -2)]
+    return out
+
+
+#: the bilinear weights of :func:`_taps`' four taps: (near row, near column), (near, far), (far, near), (far, far)
+_TAP_WEIGHTS = (9 / 16, 3 / 16, 3 / 16, 1 / 16)
+
+
+def upsample2_guided(x: torch.Tensor, guide_fine: torch.Tensor, guide_coarse: torch.Tensor,
+                     sigma: float) -> torch.Tensor:
+    """Joint bilateral 2× upsampling: :func:`upsample2`'s four bilinear taps of ``x``, each also weighted by
+    ``exp(-|g_p - g_q|² / (2 σ²))``, ``g_p`` the fine guide at the output pixel and ``g_q`` the coarse guide at
+    the tap, and renormalised. A tap across an edge of the guide (another surface's normal) then gives little, so a
+    coarse level's value does not bleed across it. A constant guide gives :func:`upsample2`'s result.
+
+    Args:
+        x: ``(B, C, H, W)``.
+        guide_fine: ``(B, G, 2H, 2W)``, e.g. the frame's normal.
+        guide_coarse: ``(B, G, H, W)``, the same guide at ``x``'s resolution (:func:`pool2` of the fine one).
+        sigma: > 0, in the guide's units.
+    Returns:
+        ``(B, C, 2H, 2W)``.
+    """
+    if not sigma > 0:
+        raise ValueError(f"upsample2_guided: sigma must be > 0, got {sigma!r}")
+    b, _, h, w = x.shape
+    if guide_coarse.shape[-2:] != (h, w) or guide_fine.shape[-2:] != (2 * h, 2 * w) \
+            or guide_fine.shape[:2] != guide_coarse.shape[:2]:
+        raise ValueError(f"upsample2_guided: x {tuple(x.shape)}, guide_fine {tuple(guide_fine.shape)} and "
+                         f"guide_coarse {tuple(guide_coarse.shape)} must be (B, C, H, W), (B, G, 2H, 2W), (B, G, H, W)")
+    fine = guide_fine.to(x.dtype)
+    dist = [(fine - g).square().sum(1, keepdim=True) for g in _taps(guide_coarse.to(x.dtype))]
+    nearest = torch.minimum(torch.minimum(dist[0], dist[1]), torch.minimum(dist[2], dist[3]))
+    num = den = None
+    scale = -0.5 / (sigma * sigma)
+    for v, d, bw in zip(_taps(x), dist, _TAP_WEIGHTS):
+        # relative to the nearest tap's distance: that tap's factor is 1, so the sum never underflows to 0
+        wgt = torch.exp((d - nearest) * scale) * bw
+        num = wgt * v if num is None else num + wgt * v
+        den = wgt if den is None else den + wgt
+    return num / den
 
 
 def conv1x1(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
