@@ -56,7 +56,10 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                   "radiance_mix": True, "albedo_kernel": 3},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "deep_blocks": 2},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "kernel_size": 3,
-                                  "coarse_kernel": 5, "albedo_kernel": 3}]}
+                                  "coarse_kernel": 5, "albedo_kernel": 3},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3,
+                                  "edge_upsample": 0.5},
+                                 {"kernel_scales": 3, "edge_upsample": 0.3}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -128,6 +131,8 @@ def test_declared_receptive_radius_bounds_the_dependence(name, kw):
     g = torch.Generator().manual_seed(3)
     inputs = {b: torch.rand(1, spec.channels, size, size, generator=g) for b in spec.branches}
     inputs["albedo"] = torch.rand(1, 3, size, size, generator=g)
+    if model.reads_normal:  # a guide the model reads beside the features (edge_upsample): its reach counts too
+        inputs["normal"] = torch.rand(1, 3, size, size, generator=g) * 2 - 1
     c = size // 2
     with torch.no_grad():
         ctx = model.frame_context(inputs)

@@ -626,14 +626,16 @@ def test_the_default_uses_every_kernel_level(render):
     -60), so its 1/4 and 1/8 kernel levels were never used."""
     from kpcn.features import frame_to_tensors
     from kpcn.inference import load_model
+    from kpcn.inference.frames import with_normal
 
     frame = render("test:glossy", spp=4, seed=1, resolution=(48, 48))
 
     def alphas(model):
         spec = model.input_spec
-        x = spec.build(frame_to_tensors(spec.select(frame), spec.layers))
+        x = with_normal(model, spec.build(frame_to_tensors(spec.select(frame), spec.layers)), frame, None, "cpu")
         with torch.no_grad():
-            return {b: [a for a in getattr(model, b).kernels(x[b]).alphas if a is not None] for b in model.branches}
+            return {b: [a for a in getattr(model, b).kernels(x[b], None, x.get("normal")).alphas if a is not None]
+                    for b in model.branches}
 
     for branch, levels in alphas(load_model(None, device="cpu")).items():
         assert levels and all(float(a.max()) > 1e-3 for a in levels), \

@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from kpcn import inference as dn
 from kpcn.inference import rows as rows_module
 from kpcn.inference.rows import supports_rows
+from kpcn.inference.frames import with_normal
 from kpcn.constants import EPS
 from kpcn.features import frame_to_tensors
 from kpcn.inputs import list_input_specs
@@ -231,17 +232,18 @@ def _kernel_paddings_that_explain(m, inputs, context) -> set[str]:
     """Paddings ``p`` such that every branch's output is its kernels (``branch_kernels``: non-negative,
     summing to one, ``kernel_size``² taps) applied to its noisy colour with ``p``; empty when none does."""
     found = set(PADDING_MODES)
+    guide = (inputs["normal"],) if m.reads_normal else ()
     for b in m.branches:
         x = inputs[b]
         try:
-            k = m.branch_kernels(b, x, context)
+            k = m.branch_kernels(b, x, context, *guide)
         except NotImplementedError:
             return set()
         if not isinstance(k, torch.Tensor) or k.shape[1] != m.kernel_size**2:
             return set()  # e.g. multi-scale kernels
         if k.min() < 0 or not torch.allclose(k.sum(1), torch.ones(()), atol=1e-5):
             return set()
-        y = m.run_branch(b, x, context)
+        y = m.run_branch(b, x, context, *guide)
         colour = x[:, :3].contiguous()
         found = {p for p in found
                  if torch.allclose(y, kernel_apply(colour, k, m.kernel_size, p), rtol=1e-5, atol=1e-6 * float(y.abs().max()))}
@@ -253,13 +255,13 @@ def test_declarations_match_what_the_model_does(render, model):
     spec = model.input_spec
     frame = render("test:glossy", 8, 1, resolution=RES)
     with torch.no_grad():
-        inputs = spec.build(frame_to_tensors(frame, spec.layers))
+        inputs = with_normal(model, spec.build(frame_to_tensors(frame, spec.layers)), frame, None, "cpu")
         explained = _kernel_paddings_that_explain(model, inputs, model.frame_context(inputs))
         assert model.convex_kernels == bool(explained), (model.convex_kernels, explained)
         if model.convex_kernels:
             assert model.kernel_padding in explained and model.zero_preserving
         # a zero branch colour (normals, albedo, depth as rendered) gives exactly zero, iff declared
-        black = spec.build(frame_to_tensors(_all_black(frame), spec.layers))
+        black = with_normal(model, spec.build(frame_to_tensors(_all_black(frame), spec.layers)), frame, None, "cpu")
         out = model(black, model.frame_context(black))
     zero = all(torch.equal(out[b], torch.zeros_like(out[b])) for b in (*model.branches, "color"))
     assert model.zero_preserving == zero

@@ -64,7 +64,9 @@ def _rel(a, b) -> float:
                                 {"input_spec": "color_albedo_normal_noise"},
                                 {"kernel_size": 3, "coarse_kernel": 5, "albedo_kernel": 3, "band_gain": True},
                                 {"coarse_kernel": 3, "radiance_mix": True, "radiance_pool": True},
-                                {"deep_blocks": 1, "band_gain": True}],
+                                {"deep_blocks": 1, "band_gain": True},
+                                {"edge_upsample": 0.5, "band_gain": True, "albedo_kernel": 3},
+                                {"edge_upsample": 0.3, "kernel_scales": 4, "radiance_pool": True}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")
 @pytest.mark.parametrize("band", [32, 6])
 def test_row_bands_equal_the_whole_frame(frame, monkeypatch, kw, band):
@@ -242,8 +244,8 @@ def groups(mi):
     return render_light_groups("test:textured", spp=8, seed=1, resolution=(50, 38))
 
 
-@pytest.mark.parametrize("kw", [{}, {"input_spec": "color_albedo_normal", "kernel_scales": 2}],
-                         ids=["split", "colour"])
+@pytest.mark.parametrize("kw", [{}, {"input_spec": "color_albedo_normal", "kernel_scales": 2},
+                                {"edge_upsample": 0.5, "band_gain": True}], ids=["split", "colour", "edge"])
 def test_row_bands_denoise_light_groups_and_other_layers_as_the_whole_frame(groups, monkeypatch, kw):
     """Light groups (and a layer filtered directly) in row bands equal the whole-frame result; they sum to the beauty."""
     monkeypatch.setattr(unet_rows, "BAND_ROWS", 6)
@@ -333,6 +335,14 @@ def test_guided_upsampling_keeps_an_edge_and_is_bilinear_on_a_flat_guide():
     gf = torch.randn(1, 3, 10, 12, generator=g, dtype=torch.float64).requires_grad_()
     gc = torch.randn(1, 3, 5, 6, generator=g, dtype=torch.float64).requires_grad_()
     assert torch.autograd.gradcheck(lambda a, b, c: upsample2_guided(a, b, c, 0.7), (xs, gf, gc))
+    # inference (no autograd: each output parity from shifted views) and training (tap maps) compute the same
+    guide = torch.randn(2, 3, 10, 12, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        fast = upsample2_guided(x, guide, pool2(guide), 0.4)
+    with torch.enable_grad():
+        slow = upsample2_guided(x.clone().requires_grad_(), guide, pool2(guide), 0.4).detach()
+    torch.testing.assert_close(slow, fast, rtol=0, atol=1e-12)
+    assert (fast - want).abs().max() > 1e-3  # a rough guide does move the result
     with pytest.raises(ValueError, match="sigma"):
         upsample2_guided(x, flat, pool2(flat), 0.0)
     with pytest.raises(ValueError, match="must be"):
@@ -357,3 +367,23 @@ def test_combine_levels_guided_is_the_bilinear_blend_on_a_flat_guide():
     edge[:, 2, :, 11:] = 1
     pyramid = [edge, pool2(edge), pool2(pool2(edge))]
     assert (combine_levels(f, alphas, gains, pyramid, 0.3) - plain).abs().max() > 1e-3
+
+
+def test_edge_upsampling_reads_the_frames_normal(frame):
+    """``edge_upsample``: the model reads the frame's normal (``reads_normal``), refuses inputs without it with a
+    message that names it, and its result differs from the bilinear blend's where the geometry has edges (the same
+    weights; test:glossy has a sphere's and the floor's silhouettes)."""
+    plain, edged = _model(band_gain=True), _model(band_gain=True, edge_upsample=0.5)
+    edged.load_state_dict(plain.state_dict())
+    assert edged.reads_normal and not plain.reads_normal
+    spec = edged.input_spec
+    inputs = spec.build(frame_to_tensors(frame, spec.layers_for(spec.branches)), spec.frame_value(frame))
+    with torch.inference_mode(), pytest.raises(ValueError, match="normal"):
+        edged(inputs)
+    a = inference.denoise(frame, plain, tile=0, device="cpu", rows=False)
+    b = inference.denoise(frame, edged, tile=0, device="cpu", rows=False)
+    assert _rel(a, b) > 1e-3
+    with pytest.raises(ValueError, match="edge_upsample"):
+        _model(edge_upsample=0.5, kernel_scales=1)
+    with pytest.raises(ValueError, match="edge_upsample"):
+        _model(edge_upsample=-1.0)

@@ -45,8 +45,15 @@ def set_lr(optimizer, step: int, cfg: RunConfig) -> float:
 
 
 def model_inputs(model, batch: dict) -> dict:
-    """The entries of ``batch`` the model reads: its spec's branches and the albedo."""
-    return {k: batch[k] for k in (*_unwrap(model).branches, "albedo")}
+    """The entries of ``batch`` the model reads: its spec's branches and the albedo, and the noisy frame's normal
+    as ``"normal"`` for a model that reads it (:attr:`~kpcn.models.DenoiserModel.reads_normal`)."""
+    net = _unwrap(model)
+    out = {k: batch[k] for k in (*net.branches, "albedo")}
+    if net.reads_normal:
+        if "noisy_normal" not in batch:
+            raise ValueError(f"{net.name or type(net).__name__} reads the frame's normal; the batch has none")
+        out["normal"] = batch["noisy_normal"]
+    return out
 
 
 def build_teacher(cfg: RunConfig, model, device) -> torch.nn.Module:

@@ -72,6 +72,8 @@ def bench_train(argv: list[str]) -> int:
         # the batch the model's input spec builds: one tensor per branch, the albedo and a target per branch
         batch = {br: torch.rand(b, spec.channels, s, s) for br in spec.branches}
         batch["albedo"] = torch.rand(b, 3, s, s)
+        if model.reads_normal:
+            batch["normal"] = torch.rand(b, 3, s, s) * 2 - 1
         targets = {br: torch.rand(b, 3, s, s) for br in spec.branches}
         opt = torch.optim.Adam(model.parameters(), lr=1e-4)
         times = []

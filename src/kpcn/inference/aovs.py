@@ -158,6 +158,8 @@ def denoise_aovs(net, inputs: dict, res: dict, context, frame: Frame, crop, run,
     filtered = {}
     for b in run:
         if sig[b]:
-            kernels, apply = net.branch_kernels(b, inputs[b], context), getattr(net, b).apply_kernels
+            guide = (inputs["normal"],) if net.reads_normal else ()
+            kernels = net.branch_kernels(b, inputs[b], context, *guide)
+            apply = getattr(net, b).apply_kernels
             filtered[b] = {k: apply(v.contiguous(), kernels) for k, v in sig[b].items()}
     return compose_aovs(plans, run, filtered, sig, res.get("albedo", inputs["albedo"]), res)

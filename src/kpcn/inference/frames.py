@@ -17,7 +17,7 @@ from .results import DenoiseResult
 from .weights import choose_default
 
 __all__ = ["THREE_CHANNEL", "source_path", "check_output", "default_model", "as_frame", "validate", "color_variance",
-           "write_output"]
+           "normal_of", "with_normal", "write_output"]
 
 #: layers that must have three channels
 THREE_CHANNEL = ("color", "diffuse", "specular", "albedo", "normal")
@@ -117,6 +117,22 @@ def color_variance(frame: Frame) -> np.ndarray | None:
     if "diffuseVariance" in frame and "specularVariance" in frame:
         return frame["diffuseVariance"] + frame["specularVariance"]
     return None
+
+
+def normal_of(frame: Frame, crop, device):
+    """The frame's normal over ``crop`` (a ``(rows, columns)`` pair of slices) as a ``(1, 3, h, w)`` float32 tensor
+    in [-1, 1] (finite: the reader replaced what was not)."""
+    from ..features import frame_to_tensors
+
+    return frame_to_tensors(frame, ("normal",), crop, device)["normal"].clamp_(-1.0, 1.0)
+
+
+def with_normal(net, inputs: dict, frame: Frame, crop, device) -> dict:
+    """``inputs`` with the frame's normal over ``crop`` as ``inputs["normal"]`` where ``net`` reads it
+    (:attr:`~kpcn.models.DenoiserModel.reads_normal`), in place; returned."""
+    if net.reads_normal:
+        inputs["normal"] = normal_of(frame, crop, device)
+    return inputs
 
 
 def write_output(out_path, color: np.ndarray, frame: Frame, result: DenoiseResult) -> None:

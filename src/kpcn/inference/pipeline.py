@@ -49,7 +49,7 @@ from ..io import SAMPLE_COUNT, Frame
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
 from .detail import refine_detail
 from .ensemble import check_views, ensemble_result
-from .frames import as_frame, check_output, color_variance, default_model, validate, write_output
+from .frames import as_frame, check_output, color_variance, default_model, validate, with_normal, write_output
 from .heap import reuse_heap
 from .precision import compute_dtype, resolve_precision
 from .results import DenoiseResult, DenoiseStats, peak_rss_mb
@@ -158,6 +158,7 @@ def denoise_result(
             tc = time.perf_counter()
             whole = (slice(None), slice(None))
             full = spec.build(frame_to_tensors(frame, spec.layers_for(active), whole, dev), frame_value, active)
+            with_normal(net, full, frame, whole, dev)
             with _autocast(use_half):
                 context = net.frame_context(full)
             del full
@@ -191,6 +192,7 @@ def denoise_result(
                 stats.tiles_run += 1
                 continue
             inputs = spec.build(frame_to_tensors(frame, spec.layers_for(run), crop, dev), frame_value, run)
+            with_normal(net, inputs, frame, crop, dev)
             with _autocast(use_half):
                 res = net(inputs, context)
             if use_half and not torch.isfinite(res["color"]).all():

@@ -21,6 +21,7 @@ from ..models import unet_rows
 from ..models.unet_rows import clamped_rows
 from ..ops import native
 from .aovs import aov_signals, compose_aovs
+from .frames import normal_of
 
 __all__ = ["denoise_rows", "supports_rows", "rows_min_pixels", "ROWS_MIN_PIXELS", "ROWS_MIN_PIXELS_PYTORCH",
            "ROWS_MIN_PIXELS_NATIVE"]
@@ -84,6 +85,7 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
         c0, c1 = min(r0, h - 1), min(r1 + spec.halo, h)  # padded rows >= h repeat row h - 1
         crop = (slice(c0, c1), slice(0, w))
         inputs = spec.build(frame_to_tensors(frame, layers, crop, device, contiguous=False), frame_value, branches)
+        n_rows = rows_of(normal_of(frame, crop, device), r0, r1, c0) if net.reads_normal else None
         if r0 < h:
             albedo[..., r0:min(r1, h), :] = inputs["albedo"][..., : min(r1, h) - r0, :]
         signals = {}
@@ -93,7 +95,8 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
             signals = aov_signals(plans, branches, lambda n: rows_of(frame_to_tensors(frame, (n,), crop, device)[n], r0, r1, c0),
                                   a_rows)
         for b, s in streams.items():
-            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b), a_rows if s.branch.albedo_kernel else None)
+            s.feed(r0, rows_of(inputs[b], r0, r1, c0), signals.get(b), a_rows if s.branch.albedo_kernel else None,
+                   n_rows)
         del inputs, signals
     for s in streams.values():
         s.run()

@@ -139,6 +139,13 @@ class DenoiserModel(nn.Module):
     def alignment(self) -> int:
         return 1
 
+    @property
+    def reads_normal(self) -> bool:
+        """Whether :meth:`forward` reads the frame's normal, ``inputs["normal"]`` ``(B, 3, H, W)`` in [-1, 1], beside
+        the branches' features (a guide, e.g. the U-Net's ``edge_upsample``); the inference pipeline and training
+        then give it (the noisy frame's own normal layer)."""
+        return False
+
     def hparams(self) -> dict:
         """``{"name": ..., **config}``: ``create_model(**hparams())`` rebuilds the architecture."""
         return {"name": self.name, **asdict(self.config)}
@@ -162,14 +169,17 @@ class DenoiserModel(nn.Module):
         """Whole-frame context computed once per frame (``None`` for local models)."""
         return None
 
-    def run_branch(self, name: str, x: torch.Tensor, context: Any = None) -> torch.Tensor:
-        """Denoise one branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` in the branch's space.
+    def run_branch(self, name: str, x: torch.Tensor, context: Any = None,
+                   normal: torch.Tensor | None = None) -> torch.Tensor:
+        """Denoise one branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` in the branch's space; ``normal``: the
+        frame's normal over the same pixels, for a model that :attr:`reads_normal`.
 
         The default runs the submodule registered under the branch's name.
         """
         return getattr(self, name)(x)
 
-    def branch_kernels(self, name: str, x: torch.Tensor, context: Any = None) -> torch.Tensor:
+    def branch_kernels(self, name: str, x: torch.Tensor, context: Any = None,
+                       normal: torch.Tensor | None = None) -> torch.Tensor:
         """The per-pixel kernels ``(B, k*k, H, W)`` a kernel predictor applies to branch ``name``.
 
         Only ``zero_preserving`` kernel predictors have them; the default uses
@@ -211,7 +221,9 @@ class DenoiserModel(nn.Module):
                      ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
         """Each present branch's output (:meth:`run_branch`), and the albedo the colour is remodulated with: None
         (the inputs' own) unless the model makes one (the U-Net's ``albedo_kernel``)."""
-        return {b: self.run_branch(b, inputs[b], context) for b in self.branches if inputs.get(b) is not None}, None
+        guide = (inputs.get("normal"),) if self.reads_normal else ()  # the normal only to a model that reads it
+        return {b: self.run_branch(b, inputs[b], context, *guide) for b in self.branches
+                if inputs.get(b) is not None}, None
 
 
 def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:
@@ -228,6 +240,12 @@ def check_inputs(model: DenoiserModel, inputs) -> tuple[int, int, int]:
         shape = tuple(albedo.shape) if isinstance(albedo, torch.Tensor) else type(albedo).__name__
         raise ValueError(f"{who}: inputs['albedo'] must be a (B, 3, H, W) tensor, got {shape}")
     b, _, h, w = albedo.shape
+    if model.reads_normal:
+        normal = inputs.get("normal")
+        if not isinstance(normal, torch.Tensor) or normal.dim() != 4 or tuple(normal.shape) != (b, 3, h, w):
+            shape = tuple(normal.shape) if isinstance(normal, torch.Tensor) else type(normal).__name__
+            raise ValueError(f"{who}: reads the frame's normal: inputs['normal'] must be a (B, 3, H, W) tensor the "
+                             f"size of the albedo {tuple(albedo.shape)}, got {shape}")
     c = model.input_spec.channels
     for name in model.branches:
         x = inputs.get(name)

@@ -24,6 +24,8 @@ def macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float
     g = torch.Generator().manual_seed(0)
     inputs = {b: torch.rand(1, spec.channels, height, width, generator=g) for b in spec.branches}
     inputs["albedo"] = torch.rand(1, 3, height, width, generator=g)
+    if getattr(model, "reads_normal", False):  # a guide beside the features (its element-wise use is not counted)
+        inputs["normal"] = torch.rand(1, 3, height, width, generator=g) * 2 - 1
     total = [0]
 
     def conv_hook(mod: nn.Conv2d, args, out):

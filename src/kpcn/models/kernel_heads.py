@@ -17,7 +17,7 @@ from torch import nn
 
 from ..inputs import radiance_of
 from ..ops.kernel_apply import KernelApply
-from .layers import conv1x1, pool2, pool2_radiance, upsample2, upsample2_guided
+from .layers import apply_guided, conv1x1, guided_weights, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
            "gated_albedo", "albedo_bound", "radiance_mixed"]
@@ -115,6 +115,10 @@ class MultiScaleKernels:
     #: ``UNetConfig.radiance_mix``: per-level weights ``γ`` ``(B, 1, ...)`` of the radiance-space filter
     #: (:func:`radiance_mixed`); None: the kernels applied to the colour as it is
     mixes: tuple[torch.Tensor, ...] | None = None
+    #: ``UNetConfig.edge_upsample``: the guide of every level ``(B, G, H/2**l, W/2**l)`` at the padded size (the
+    #: frame's normal and its :func:`pool2` pyramid) and the σ of the joint bilateral upsampling; None: bilinear
+    guides: tuple[torch.Tensor, ...] | None = None
+    guide_sigma: float = 0.0
 
 
 class MultiScaleApply(nn.Module):
@@ -147,7 +151,7 @@ class MultiScaleApply(nn.Module):
                 filtered.append(radiance_mixed(apply, level_colour.contiguous(), k, ks.mixes[level]))
             else:
                 filtered.append(apply(level_colour.contiguous(), k))
-        return combine_levels(filtered, ks.alphas, ks.gains)[..., :h, :w]
+        return combine_levels(filtered, ks.alphas, ks.gains, ks.guides, ks.guide_sigma)[..., :h, :w]
 
 
 def combine_levels(filtered, alphas, gains=None, guides=None, sigma: float = 0.0) -> torch.Tensor:
@@ -162,13 +166,15 @@ def combine_levels(filtered, alphas, gains=None, guides=None, sigma: float = 0.0
         f, alpha = filtered[level], alphas[level]
         beta = gains[level] if gains is not None else None
         df = pool2(f)
-
-        def up(t, level=level):
-            return upsample2_guided(t, guides[level], guides[level + 1], sigma) if guided else upsample2(t)
-
+        if guided:  # the tap weights once for the level, both maps upsampled in one pass
+            wts = guided_weights(guides[level].to(f.dtype), guides[level + 1], sigma)
+            both = apply_guided(torch.cat([df, out - df], 1), wts)
+            u_df, u_corr = both[:, :df.shape[1]], both[:, df.shape[1]:]
+        else:
+            u_df, u_corr = (upsample2(df) if beta is not None else None), upsample2(out - df)
         if beta is not None:  # f - (1 - β)(f - U D f) = lerp(U D f, f, β)
-            f = torch.lerp(up(df), f, beta)
-        out = f.addcmul(alpha, up(out - df))
+            f = torch.lerp(u_df, f, beta)
+        out = f.addcmul(alpha, u_corr)
     return out
 
 

@@ -136,20 +136,27 @@ class UNetKPCN(DenoiserModel):
         if not self.config.albedo_kernel or inputs.get("diffuse") is None:
             return super().run_branches(inputs, context)
         net, x = self.diffuse, inputs["diffuse"]
-        ks = net.kernels(x, (context or {}).get("diffuse"))
+        normal = inputs.get("normal") if self.reads_normal else None
+        ks = net.kernels(x, (context or {}).get("diffuse"), normal)
         out = {"diffuse": net.apply_kernels(x[:, :3].contiguous(), ks)}
         albedo = net.filter_albedo(inputs["albedo"], ks)
         del ks
-        out.update((b, self.run_branch(b, inputs[b], context)) for b in self.branches
+        guide = (normal,) if self.reads_normal else ()  # the normal only where read (an override may not take it)
+        out.update((b, self.run_branch(b, inputs[b], context, *guide)) for b in self.branches
                    if b != "diffuse" and inputs.get(b) is not None)
         return out, albedo
 
-    def run_branch(self, name: str, x: torch.Tensor, context=None) -> torch.Tensor:
+    def run_branch(self, name: str, x: torch.Tensor, context=None, normal=None) -> torch.Tensor:
         """One branch, with its whole-frame summary from ``context`` when given (else its own)."""
-        return getattr(self, name)(x, (context or {}).get(name))
+        return getattr(self, name)(x, (context or {}).get(name), normal)
 
-    def branch_kernels(self, name: str, x: torch.Tensor, context=None) -> torch.Tensor:
-        return getattr(self, name).kernels(x, (context or {}).get(name))
+    def branch_kernels(self, name: str, x: torch.Tensor, context=None, normal=None) -> torch.Tensor:
+        return getattr(self, name).kernels(x, (context or {}).get(name), normal)
+
+    @property
+    def reads_normal(self) -> bool:
+        """``edge_upsample``: the blend's upsampling is guided by the frame's normal."""
+        return bool(self.config.edge_upsample)
 
 
 @register_model("unet_kpcn", config=UNetConfig)
@@ -217,7 +224,14 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
-register_weights("unet_kpcn", "wide64n", "unet_wide64n.safetensors", default=True,
+register_weights("unet_kpcn", "wide64ne", "unet_wide64n.safetensors", default=True,
+                 config=dict(DETAIL_STAGE, detail_eps=0.001, edge_upsample=0.5),
+                 description="unet_kpcn:wide64n's file and detail stage with the coarse-to-fine blend's upsampling "
+                             "guided by the frame's normal (edge_upsample 0.5, no weights): a coarse level's value "
+                             "no longer bleeds across an edge of the geometry, where the default's 4-spp error "
+                             "against OIDN lies; measured on the report's and the validation scenes "
+                             "(docs/measured.md, fortieth session)")
+register_weights("unet_kpcn", "wide64n", "unet_wide64n.safetensors",
                  config=dict(DETAIL_STAGE, detail_eps=0.001),
                  description="unet_kpcn:wide64e (the same network, 98 k multiply-adds per pixel, and its detail stage) "
                              "fine-tuned in two runs of 600 steps on the CPU on 89 fresh procedural 256x256 scenes "

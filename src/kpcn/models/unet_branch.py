@@ -243,14 +243,30 @@ class UNetBranch(nn.Module):
         std = torch.sqrt(bottleneck.var(dim=(2, 3), keepdim=True, unbiased=False) + 1e-8)
         return self.summary(torch.cat([mean, std], dim=1))
 
-    def forward(self, x: torch.Tensor, summary: torch.Tensor | None = None) -> torch.Tensor:
-        return self.apply_kernels(x[:, :3].contiguous(), self.kernels(x, summary))
+    def forward(self, x: torch.Tensor, summary: torch.Tensor | None = None,
+                normal: torch.Tensor | None = None) -> torch.Tensor:
+        return self.apply_kernels(x[:, :3].contiguous(), self.kernels(x, summary, normal))
 
-    def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None):
+    def guide_pyramid(self, normal: torch.Tensor | None) -> tuple[torch.Tensor, ...] | None:
+        """``edge_upsample``: the frame's normal ``(B, 3, H, W)`` padded to the alignment (replicate, as the colour
+        is) and its :func:`pool2` pyramid, one per kernel level; None without ``edge_upsample``."""
+        cfg = self.cfg
+        if not cfg.edge_upsample:
+            return None
+        if normal is None:
+            raise ValueError("UNetBranch: edge_upsample guides the blend with the frame's normal: give it "
+                             "(inputs['normal'], (B, 3, H, W))")
+        g = [self._pad(normal.float().clamp(-1.0, 1.0))]
+        for _ in range(cfg.kernel_scales - 1):
+            g.append(pool2(g[-1]))
+        return tuple(g)
+
+    def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None, normal: torch.Tensor | None = None):
         """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous).
 
         With ``kernel_scales > 1``: a :class:`MultiScaleKernels` (kernels and blending
-        weights of every level, at the padded size), which ``apply_kernels`` takes the same way.
+        weights of every level, at the padded size), which ``apply_kernels`` takes the same way;
+        with ``edge_upsample`` it carries the guide pyramid of ``normal`` (:meth:`guide_pyramid`).
         """
         h_in, w_in = x.shape[-2:]
         h, decoded = self.decode(self.encode(x), summary)
@@ -283,7 +299,9 @@ class UNetBranch(nn.Module):
                 albedo = (_bounded_softmax(za[:, :-1], s), gate_of(za[:, -1:], self.cfg.albedo_gate_gain), bound)
             del z
         return MultiScaleKernels(tuple(kernels), tuple(alphas), (h_in, w_in),
-                                 tuple(gains) if self.cfg.band_gain else None, albedo, tuple(mixes) if self.mix else None)
+                                 tuple(gains) if self.cfg.band_gain else None, albedo,
+                                 tuple(mixes) if self.mix else None, self.guide_pyramid(normal),
+                                 float(self.cfg.edge_upsample))
 
     def filter_albedo(self, albedo: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
         """The albedo ``(B, 3, H, W)`` the colour is remodulated with: ``max(a + g·(K_a ⊛ a - a), 0)`` with the

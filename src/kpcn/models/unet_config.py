@@ -103,6 +103,12 @@ class UNetConfig:
         detail_eps: the regression's ridge on the normal's window covariance (> 0): larger keeps less.
         detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
             exceeds ``c`` (fireflies neither steer the fit nor come back through it).
+        edge_upsample: 0 (bilinear) or ``σ > 0``: every 2× upsampling of the coarse-to-fine blend (``kernel_scales``
+            > 1) is joint bilateral on the frame's normal (:func:`kpcn.models.layers.upsample2_guided`, the normal
+            and its 2×2-pooled pyramid as the guide, σ in the normal's units), so a coarse level's value does not
+            bleed across an edge of the geometry. The model then reads the frame's normal (``inputs["normal"]``,
+            ``(B, 3, H, W)``; :attr:`~kpcn.models.DenoiserModel.reads_normal`). An inference setting with no
+            weights, like the detail stage (docs/measured.md, fortieth session).
         exposure_range: None, or ``[lo, hi]``: the exposure keys (:func:`kpcn.exposure.frame_key`) of the frames
             the weights were trained on; :func:`kpcn.inference.denoise` denoises a frame whose key lies outside at
             the range's centre and scales its result back (:func:`kpcn.exposure.exposure_scale`). An inference
@@ -135,6 +141,7 @@ class UNetConfig:
     detail_radius: int = 0
     detail_eps: float = 0.01
     detail_clip: float = 0.0
+    edge_upsample: float = 0.0
     exposure_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
@@ -197,6 +204,11 @@ class UNetConfig:
                                  f"branch (log_branches); got kernel_scales {self.kernel_scales} and {spec.name!r} "
                                  f"(log_branches {spec.log_branches})")
         check_detail_config(self, spec, "UNetConfig")
+        if isinstance(self.edge_upsample, bool) or not self.edge_upsample >= 0 or \
+                (self.edge_upsample and (self.kernel_scales < 2 or "normal" not in spec.layers)):
+            raise ValueError(f"UNetConfig.edge_upsample must be 0 or > 0 and needs kernel_scales >= 2 and an input "
+                             f"spec that reads the normal; got {self.edge_upsample!r}, kernel_scales "
+                             f"{self.kernel_scales}, {spec.name!r}")
         if self.summary_channels < 0:
             raise ValueError(f"UNetConfig.summary_channels must be >= 0, got {self.summary_channels}")
         if not self.logit_scale > 0 or not self.init_sigma > 0:

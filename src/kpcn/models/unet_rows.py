@@ -29,7 +29,7 @@ from ..ops.kernel_apply import kernel_apply_padded
 from ..ops.fused import feed_native, softmax_apply_native, upsample_guide_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
-from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
+from .layers import apply_guided, conv1x1, conv1x1_lowp, guided_weights, pool2, transform_input, upsample2
 from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -127,17 +127,25 @@ class RowStream:
         #: the albedo at full resolution (a branch with albedo kernels), and with albedo_clamp its bound as a 4th channel
         clamp = bool(branch.albedo_kernel and cfg.albedo_clamp)
         self._albedo = torch.empty(1, 3 + clamp, hp, wp, **self._kw) if branch.albedo_kernel else None
+        #: ``edge_upsample``: the frame's normal at full resolution (the blend's guide), and pooled to half in run()
+        self._normal = torch.empty(1, 3, hp, wp, **self._kw) if cfg.edge_upsample else None
+        self._normal_half = None
 
     def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None,
-             albedo: torch.Tensor | None = None) -> None:
+             albedo: torch.Tensor | None = None, normal: torch.Tensor | None = None) -> None:
         """Features ``(1, C, r1 - r0, padded width)`` of rows ``[r0, r1)`` of the padded frame (bands in order),
-        ``layers``: other ``(1, 3, r1 - r0, padded width)`` signals to filter (the same keys every band), and
+        ``layers``: other ``(1, 3, r1 - r0, padded width)`` signals to filter (the same keys every band),
         ``albedo`` ``(1, 3, r1 - r0, padded width)``: the same rows of the albedo (a branch with albedo kernels
-        needs it)."""
+        needs it), and ``normal``: the same rows of the frame's normal (a branch with ``edge_upsample`` needs it)."""
         n = x.shape[-2]
         if r0 != self._fed or n % 2 or x.shape[-1] != self.padded_size[1]:
             raise ValueError(f"RowStream.feed: expected an even number of rows from row {self._fed}, "
                              f"{self.padded_size[1]} wide; got rows {r0}..{r0 + n}, {x.shape[-1]} wide")
+        if self._normal is not None:
+            if normal is None:
+                raise ValueError("RowStream.feed: this branch guides its blend by the normal (edge_upsample): give "
+                                 "each band's normal")
+            self._normal[..., r0:r0 + n, :] = normal.clamp(-1.0, 1.0)
         if self._albedo is not None:
             if albedo is None:
                 raise ValueError("RowStream.feed: this branch filters the albedo (albedo_kernel): give each band's albedo")
@@ -222,8 +230,15 @@ class RowStream:
                 padded = F.pad(colour, (r, r, r, r), mode="replicate") if r else colour
                 filtered.append(_softmax_apply(conv1x1(d, hd.weight[:kk], hd.bias[:kk]), padded, kc, cfg.logit_scale,
                                                mix))
+            guides = None
+            if self._normal is not None:  # the normal's pyramid from half resolution on (the levels combined here)
+                guides = [pool2(self._normal)]
+                for _ in range(cfg.kernel_scales - 2):
+                    guides.append(pool2(guides[-1]))
+                self._normal_half = guides[0]
             # gains: None each without band_gain
-            self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains))
+            self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains, guides,
+                                                                 float(cfg.edge_upsample)))
         self._half = {}
 
     @property
@@ -265,15 +280,24 @@ class RowStream:
                            full[..., e0:e1, :] for key, full in self._full.items()})
         # z is this band's own: its logits made weights in place on the PyTorch path
         filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
+        # the blend's upsampling guided by the normal (edge_upsample), as in the whole frame: the tap weights once
+        wts = guided_weights(self._normal[..., e0:e1, :], self._normal_half[..., e0 // 2:e1 // 2, :],
+                             float(cfg.edge_upsample)) if self._normal is not None and alpha is not None else None
         for key, f in _unstacked(self._full, filtered).items():
             if alpha is None:
                 out[key] = f
                 continue
             df = pool2(f)
-            up = upsample2(clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df)[..., i0:i0 + n, :]
+            corr = clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df
+            if wts is not None:
+                both = apply_guided(torch.cat([df, corr], 1), wts)[..., i0:i0 + n, :]
+                u_df, up = both[:, :3], both[:, 3:]
+            else:
+                u_df = upsample2(df)[..., i0:i0 + n, :] if gain is not None else None
+                up = upsample2(corr)[..., i0:i0 + n, :]
             fi = f[..., i0:i0 + n, :]
             if gain is not None:  # the high band scaled by β: f - (1 - β)(f - U D f) = lerp(U D f, f, β)
-                fi = torch.lerp(upsample2(df)[..., i0:i0 + n, :], fi, gain[..., i0:i0 + n, :])
+                fi = torch.lerp(u_df, fi, gain[..., i0:i0 + n, :])
             out[key] = fi.addcmul(alpha[..., i0:i0 + n, :], up)
         return out
 

@@ -106,8 +106,11 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
     if set(spec.branches) != {"diffuse", "specular"}:
         raise ValueError(f"diagnose: needs a model with the diffuse/specular split; {spec.name!r} has {spec.branches}")
     t = pair_tensors(noisy, ref, spec)
+    inputs = {k: t[k] for k in (*spec.branches, "albedo")}
+    if net.reads_normal:
+        inputs["normal"] = t["noisy_normal"]
     with torch.no_grad():
-        out = net({k: t[k] for k in (*spec.branches, "albedo")})
+        out = net(inputs)
     colour = _hwc(out["color"])
     spec_rad = _hwc(radiance_of(out["specular"]))
     diff_rad = colour - spec_rad
