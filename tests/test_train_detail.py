@@ -63,3 +63,33 @@ def test_detail_stage_trains_and_validates_the_pipelines_output(tiny_dataset, tm
 
     with pytest.raises(ConfigError, match="no detail stage"):
         train(_unet_cfg(tiny_dataset, tmp_path, "refused", detail_stage=True), progress=False)
+
+
+def test_edge_upsample_trains_from_a_file_without_it(tiny_dataset, tmp_path):
+    """``edge_upsample`` adds no parameter: a file trained without it starts a run with it; the run reads the
+    batch's noisy normal (``model_inputs``), so its first loss differs from the same run's without it, and what
+    training's inputs give on a whole frame is what ``denoise`` gives."""
+    from kpcn.data import FrameDataset
+    from kpcn.inference import load_model
+    from kpcn.inference.pipeline import denoise_result
+    from kpcn.io import read_exr
+    from kpcn.train import split_pairs
+    from kpcn.train_steps import model_inputs
+
+    train(_unet_cfg(tiny_dataset, tmp_path, "flat", stage2_steps=3, lr=3e-3), progress=False)
+    src = str(tmp_path / "flat" / "model.safetensors")
+    first = {}
+    for name, kw in (("edged", {"edge_upsample": 0.3}), ("bilinear", {})):
+        first[name] = train(_unet_cfg(tiny_dataset, tmp_path, name, kw, init=src, lr=1e-12),
+                            progress=False)["losses"][0]
+    assert first["edged"] != pytest.approx(first["bilinear"], rel=1e-5, abs=0), first
+    model = load_model(str(tmp_path / "edged" / "model.safetensors"), device="cpu")
+    assert model.reads_normal and model.config.edge_upsample == 0.3
+    pairs = split_pairs(_unet_cfg(tiny_dataset, tmp_path, "y"))[0]
+    f = FrameDataset(pairs[:1])[0]
+    inputs = {k: v[None] for k, v in model_inputs(model, f).items()}
+    assert "normal" in inputs
+    with torch.no_grad():
+        got = model(inputs)["color"][0].permute(1, 2, 0).numpy()
+    want = denoise_result(read_exr(pairs[0].input_path), model, tile=None, precision="float32").color
+    assert abs(got - want).max() <= 1e-4 * max(1.0, float(abs(want).max()))

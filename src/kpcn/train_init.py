@@ -42,8 +42,9 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
                   "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks"}
-    # the detail stage's settings add no parameter: a file trained without the stage starts one trained with it
-    free = {"name", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
+    # the detail stage's settings and the normal-guided blend (edge_upsample) add no parameter: a file trained
+    # without them starts one trained with them
+    free = {"name", "edge_upsample", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
     if cfg.train.init_extend:  # U-Net kernels of another size start from the file's (_resize_kernels)
         free |= {"kernel_size", "coarse_kernel"}
     # a file written before a field existed holds that field's default
