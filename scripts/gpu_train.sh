@@ -4,7 +4,8 @@
 # U-Net on them until BUDGET seconds after the start (BASE: the config whose model and losses it takes, default
 # configs/unet_wide64n.yaml, the shipped default's recipe; INIT: the weights it starts from, default
 # unet_kpcn:wide64n, the default's file; LR: the peak rate; SPP_MIX: data.spp_mix, the share of patches whose spp
-# varies per pixel, default 0). FIRST: the first scene seed; earlier leases rendered from
+# varies per pixel, default 0; EDGE: model.edge_upsample, the normal-guided blend, default 0.5 as the shipped default
+# runs it, 0 bilinear). FIRST: the first scene seed; earlier leases rendered from
 # 50001 (sixteenth session), 60001 (twenty-sixth and thirty-first) and 71001 (thirty-fifth): pass a fresh one.
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
@@ -84,6 +85,8 @@ d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / 
          patch_size=int(os.environ.get("PATCH", 128)), converged_min_ref_spp=int(os.environ.get("REF", 2048)),
          spp_by_root={}, balance_spp=False,  # every fresh scene at every spp
          spp_mix=float(os.environ.get("SPP_MIX", 0)))
+# the shipped default runs its blend guided by the normal (edge_upsample 0.5): train as it runs (EDGE=0: bilinear)
+base["model"]["edge_upsample"] = float(os.environ.get("EDGE", 0.5))
 base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64n"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
