@@ -130,6 +130,9 @@ class RowStream:
         #: ``edge_upsample``: the frame's normal at full resolution (the blend's guide), and pooled to half in run()
         self._normal = torch.empty(1, 3, hp, wp, **self._kw) if cfg.edge_upsample else None
         self._normal_half = None
+        #: a dict that streams over the same frame share, holding the last band's guided tap weights (they follow from
+        #: the normal alone): the second branch's stream reuses the first's (set by the caller; None: not shared)
+        self.guide_weights_cache: dict | None = None
 
     def feed(self, r0: int, x: torch.Tensor, layers: dict[str, torch.Tensor] | None = None,
              albedo: torch.Tensor | None = None, normal: torch.Tensor | None = None) -> None:
@@ -280,9 +283,18 @@ class RowStream:
                            full[..., e0:e1, :] for key, full in self._full.items()})
         # z is this band's own: its logits made weights in place on the PyTorch path
         filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
-        # the blend's upsampling guided by the normal (edge_upsample), as in the whole frame: the tap weights once
-        wts = guided_weights(self._normal[..., e0:e1, :], self._normal_half[..., e0 // 2:e1 // 2, :],
-                             float(cfg.edge_upsample)) if self._normal is not None and alpha is not None else None
+        # the blend's upsampling guided by the normal (edge_upsample), as in the whole frame: the tap weights once a
+        # band (and once for every stream that shares the cache)
+        wts = None
+        if self._normal is not None and alpha is not None:
+            cache, key = self.guide_weights_cache, (e0, e1, self.padded_size, float(cfg.edge_upsample))
+            if cache is not None and cache.get("key") == key:
+                wts = cache["weights"]
+            else:
+                wts = guided_weights(self._normal[..., e0:e1, :], self._normal_half[..., e0 // 2:e1 // 2, :],
+                                     float(cfg.edge_upsample))
+                if cache is not None:
+                    cache.update(key=key, weights=wts)
         for key, f in _unstacked(self._full, filtered).items():
             if alpha is None:
                 out[key] = f
