@@ -20,7 +20,8 @@ from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
 from kpcn.models.kernel_heads import GuidedHead, _bounded_softmax, _softmax_weights
-from kpcn.models.layers import conv1x1, pool2, upsample2, upsample2_guided
+from kpcn.models.guided import upsample2_guided
+from kpcn.models.layers import conv1x1, pool2, upsample2
 from kpcn.ops.kernel_apply import kernel_apply, kernel_apply_padded
 
 FRAME_RES = (150, 117)  # width, height: neither a multiple of the alignment (16)
@@ -335,7 +336,7 @@ def test_guided_upsampling_keeps_an_edge_and_is_bilinear_on_a_flat_guide():
     gf = torch.randn(1, 3, 10, 12, generator=g, dtype=torch.float64).requires_grad_()
     gc = torch.randn(1, 3, 5, 6, generator=g, dtype=torch.float64).requires_grad_()
     assert torch.autograd.gradcheck(lambda a, b, c: upsample2_guided(a, b, c, 0.7), (xs, gf, gc))
-    # inference (no autograd: each output parity from shifted views) and training (tap maps) compute the same
+    # with and without autograd (training and inference) the same
     guide = torch.randn(2, 3, 10, 12, generator=g, dtype=torch.float64)
     with torch.no_grad():
         fast = upsample2_guided(x, guide, pool2(guide), 0.4)

@@ -114,6 +114,18 @@ def pair_tensors(noisy: Frame, ref: Frame, spec: InputSpec | str = DEFAULT_SPEC)
     return out
 
 
+def model_inputs(net, tensors: dict) -> dict:
+    """The entries of ``tensors`` (:func:`pair_tensors`' dict, or a batch of such) that ``net`` reads: its spec's
+    branches and the albedo, and the noisy frame's normal as ``"normal"`` for a model that reads it
+    (:attr:`~kpcn.models.DenoiserModel.reads_normal`)."""
+    out = {k: tensors[k] for k in (*net.branches, "albedo")}
+    if net.reads_normal:
+        if "noisy_normal" not in tensors:
+            raise ValueError(f"{net.name or type(net).__name__} reads the frame's normal; the batch has none")
+        out["normal"] = tensors["noisy_normal"]
+    return out
+
+
 # ----------------------------------------------------------------------------- patch sampling
 
 

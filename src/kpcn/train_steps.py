@@ -6,7 +6,7 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from .augment import Augmentation, augment_patch, undo_flips
-from .data import FrameDataset, PatchDataset
+from .data import FrameDataset, PatchDataset, model_inputs as net_inputs
 from .distributed import Dist
 from .losses import create_loss
 from .metrics import all_metrics, tonemap
@@ -45,15 +45,8 @@ def set_lr(optimizer, step: int, cfg: RunConfig) -> float:
 
 
 def model_inputs(model, batch: dict) -> dict:
-    """The entries of ``batch`` the model reads: its spec's branches and the albedo, and the noisy frame's normal
-    as ``"normal"`` for a model that reads it (:attr:`~kpcn.models.DenoiserModel.reads_normal`)."""
-    net = _unwrap(model)
-    out = {k: batch[k] for k in (*net.branches, "albedo")}
-    if net.reads_normal:
-        if "noisy_normal" not in batch:
-            raise ValueError(f"{net.name or type(net).__name__} reads the frame's normal; the batch has none")
-        out["normal"] = batch["noisy_normal"]
-    return out
+    """The entries of ``batch`` the model (or its DDP wrapper) reads (:func:`kpcn.data.model_inputs`)."""
+    return net_inputs(_unwrap(model), batch)
 
 
 def build_teacher(cfg: RunConfig, model, device) -> torch.nn.Module:

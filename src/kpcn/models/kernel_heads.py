@@ -17,7 +17,8 @@ from torch import nn
 
 from ..inputs import radiance_of
 from ..ops.kernel_apply import KernelApply
-from .layers import apply_guided, conv1x1, guided_weights, pool2, pool2_radiance, upsample2
+from .guided import apply_guided, guided_weights
+from .layers import conv1x1, pool2, pool2_radiance, upsample2
 
 __all__ = ["GuidedHead", "MultiScaleKernels", "MultiScaleApply", "blend_weights", "combine_levels", "gate_of",
            "gated_albedo", "albedo_bound", "radiance_mixed"]
@@ -158,8 +159,8 @@ def combine_levels(filtered, alphas, gains=None, guides=None, sigma: float = 0.0
     """Coarse to fine, ``o_l = f_l + α_l · U(o_{l+1} - D(f_l))`` over filtered levels ``(B, 3, H/2**l, W/2**l)``;
     with a level's gain ``β_l`` (``gains``, None: 1) also ``- (1 - β_l) · (f_l - U(D(f_l)))``, its high band scaled.
     ``U`` is :func:`upsample2`; with ``guides`` (a guide ``(B, G, H/2**l, W/2**l)`` per level, e.g. the frame's
-    normal and its :func:`pool2` pyramid) and ``sigma`` > 0, :func:`upsample2_guided` (joint bilateral), both
-    ``U``s, so that a coarse level's value does not bleed across an edge of the guide."""
+    normal and its :func:`pool2` pyramid) and ``sigma`` > 0, :func:`~kpcn.models.guided.upsample2_guided` (joint
+    bilateral), both ``U``s, so that a coarse level's value does not bleed across an edge of the guide."""
     out = filtered[-1]
     guided = guides is not None and sigma > 0
     for level in range(len(filtered) - 2, -1, -1):

@@ -8,8 +8,8 @@
 * :func:`albedo_ratio`: the per-tap factor that turns a kernel applied to the
   colour into one applied to the albedo-demodulated colour (KPCN's ``demodulate``);
 * :func:`pool2`, :func:`upsample2` and :func:`conv1x1` (:class:`Conv1x1`): a 2×2 average pool, a bilinear 2×
-  upsampling and a 1×1 convolution written for the CPU's memory traffic (what the U-Net does at full resolution);
-  :func:`upsample2_guided`: the bilinear upsampling's taps weighted by a guide's similarity (joint bilateral);
+  upsampling and a 1×1 convolution written for the CPU's memory traffic (what the U-Net does at full resolution;
+  :mod:`kpcn.models.guided`: the upsampling guided by the frame's normal);
 * :func:`relu_` (:class:`ReLU`): an in-place ReLU that is fast on bfloat16 tensors too;
 * :func:`up_cat_conv3x3`: a U-Net decoder's first convolution of ``[nearest_up2(coarse), skip]``
   without building either (a transposed convolution of the coarse input plus a convolution of the skip).
@@ -23,8 +23,7 @@ from torch import nn
 from ..inputs import get_input_spec, radiance_of
 
 __all__ = ["INPUT_TRANSFORMS", "VARIANCE_CHANNELS", "VARIANCE_FLOOR", "DEMOD_EPS", "transform_input",
-           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "upsample2_guided",
-           "guided_weights", "apply_guided", "conv1x1",
+           "kernel_prior_bias", "albedo_ratio", "pool2", "pool2_radiance", "upsample2", "conv1x1",
            "conv1x1_lowp", "Conv1x1",
            "up_cat_conv3x3", "UpCatConv", "UpAddConv", "relu_", "ReLU"]
 
@@ -154,117 +153,6 @@ def upsample2(x: torch.Tensor, context_rows: bool = False) -> torch.Tensor:
         torch.lerp(v[..., 1:], v[..., :-1], 0.25, out=even[..., 1:])
         torch.lerp(v[..., :-1], v[..., 1:], 0.25, out=odd[..., :-1])
     return out
-
-
-def _rows_taps(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The two source rows of each output row of a 2× upsampling along dim -2 (``align_corners=False``, edges
-    repeated): ``(near, far)``, each ``(..., 2H, W)``: row ``2i`` reads ``i`` and ``i - 1``, row ``2i + 1`` ``i`` and
-    ``i + 1``."""
-    above = torch.cat([x[..., :1, :], x[..., :-1, :]], dim=-2)
-    below = torch.cat([x[..., 1:, :], x[..., -1:, :]], dim=-2)
-    near = x.repeat_interleave(2, dim=-2)
-    far = torch.stack((above, below), dim=-2).flatten(-3, -2)
-    return near, far
-
-
-def _taps(x: torch.Tensor) -> list[torch.Tensor]:
-    """The four source pixels of each output pixel of a bilinear 2× upsampling ``(B, C, H, W) -> (B, C, 2H, 2W)``,
-    in the order of :data:`_TAP_WEIGHTS`."""
-    out = []
-    for rows in _rows_taps(x):
-        near, far = _rows_taps(rows.transpose(-1, -2))
-        out += [near.transpose(-1, -2), far.transpose(-1, -2)]
-    return out
-
-
-#: the bilinear weights of :func:`_taps`' four taps: (near row, near column), (near, far), (far, near), (far, far)
-_TAP_WEIGHTS = (9 / 16, 3 / 16, 3 / 16, 1 / 16)
-
-
-def _shifted(x: torch.Tensor):
-    """``x`` ``(B, C, H, W)`` replicate-padded by one, and a function giving its view shifted by ``(dy, dx)``: the
-    value at ``(i + dy, j + dx)``, edges repeated."""
-    h, w = x.shape[-2:]
-    xp = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    return lambda dy, dx: xp[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-
-
-#: for each output parity ``(a, b)`` (row 2i + a, column 2j + b), the coarse offsets of the four taps in the order of
-#: :data:`_TAP_WEIGHTS`: (near row, near column), (near, far), (far, near), (far, far); far is -1 for an even index
-_PARITY_TAPS = {(a, b): ((0, 0), (0, 2 * b - 1), (2 * a - 1, 0), (2 * a - 1, 2 * b - 1))
-                for a in (0, 1) for b in (0, 1)}
-
-
-def guided_weights(guide_fine: torch.Tensor, guide_coarse: torch.Tensor, sigma: float) -> tuple[torch.Tensor, ...]:
-    """The four tap weights ``(B, 1, 2H, 2W)`` of :func:`upsample2_guided` (normalised: they sum to one), from the
-    guides alone, for :func:`apply_guided` to use on as many maps as share them."""
-    if not sigma > 0:
-        raise ValueError(f"upsample2_guided: sigma must be > 0, got {sigma!r}")
-    h, w = guide_coarse.shape[-2:]
-    if guide_fine.shape[-2:] != (2 * h, 2 * w) or guide_fine.shape[:2] != guide_coarse.shape[:2]:
-        raise ValueError(f"upsample2_guided: guide_fine {tuple(guide_fine.shape)} and guide_coarse "
-                         f"{tuple(guide_coarse.shape)} must be (B, G, 2H, 2W) and (B, G, H, W)")
-    scale = -0.5 / (sigma * sigma)
-    if torch.is_grad_enabled():  # differentiable: the taps as full-resolution maps
-        dist = [(guide_fine - g).square().sum(1, keepdim=True) for g in _taps(guide_coarse.to(guide_fine.dtype))]
-    else:  # each output parity at the coarse resolution, from shifted views (no full-resolution tap maps)
-        b_ = guide_fine.shape[0]
-        dist = [torch.empty(b_, 1, 2 * h, 2 * w, dtype=guide_fine.dtype, device=guide_fine.device) for _ in range(4)]
-        shift = _shifted(guide_coarse.to(guide_fine.dtype))
-        for (a, b), offsets in _PARITY_TAPS.items():
-            fine = guide_fine[..., a::2, b::2]
-            for d, (dy, dx) in zip(dist, offsets):
-                d[..., a::2, b::2].copy_((fine - shift(dy, dx)).square_().sum(1, keepdim=True))
-    # relative to the nearest tap's distance: that tap's factor is 1, so the sum never underflows to 0
-    nearest = torch.minimum(torch.minimum(dist[0], dist[1]), torch.minimum(dist[2], dist[3]))
-    wgt = [torch.exp((d - nearest) * scale) * bw for d, bw in zip(dist, _TAP_WEIGHTS)]
-    total = wgt[0] + wgt[1] + wgt[2] + wgt[3]
-    return tuple(v / total for v in wgt)
-
-
-def apply_guided(x: torch.Tensor, weights: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """``(B, C, H, W) -> (B, C, 2H, 2W)``: the four bilinear taps of ``x`` weighted by :func:`guided_weights`."""
-    h, w = x.shape[-2:]
-    if weights[0].shape[-2:] != (2 * h, 2 * w):
-        raise ValueError(f"upsample2_guided: x {tuple(x.shape)} and weights {tuple(weights[0].shape)} must be "
-                         f"(B, C, H, W) and (B, 1, 2H, 2W)")
-    if torch.is_grad_enabled():
-        out = None
-        for v, wt in zip(_taps(x), weights):
-            out = v * wt if out is None else out + v * wt
-        return out
-    out = torch.empty(*x.shape[:-2], 2 * h, 2 * w, dtype=x.dtype, device=x.device)
-    shift = _shifted(x)
-    for (a, b), offsets in _PARITY_TAPS.items():
-        o = out[..., a::2, b::2]
-        for k, ((dy, dx), wt) in enumerate(zip(offsets, weights)):
-            if k == 0:
-                o.copy_(shift(dy, dx) * wt[..., a::2, b::2])
-            else:
-                o.addcmul_(shift(dy, dx), wt[..., a::2, b::2])
-    return out
-
-
-def upsample2_guided(x: torch.Tensor, guide_fine: torch.Tensor, guide_coarse: torch.Tensor,
-                     sigma: float) -> torch.Tensor:
-    """Joint bilateral 2× upsampling: :func:`upsample2`'s four bilinear taps of ``x``, each also weighted by
-    ``exp(-|g_p - g_q|² / (2 σ²))``, ``g_p`` the fine guide at the output pixel and ``g_q`` the coarse guide at
-    the tap, and renormalised. A tap across an edge of the guide (another surface's normal) then gives little, so a
-    coarse level's value does not bleed across it. A constant guide gives :func:`upsample2`'s result.
-    (:func:`guided_weights` and :func:`apply_guided`: the same in two steps, the weights shared by several maps.)
-
-    Args:
-        x: ``(B, C, H, W)``.
-        guide_fine: ``(B, G, 2H, 2W)``, e.g. the frame's normal.
-        guide_coarse: ``(B, G, H, W)``, the same guide at ``x``'s resolution (:func:`pool2` of the fine one).
-        sigma: > 0, in the guide's units.
-    Returns:
-        ``(B, C, 2H, 2W)``.
-    """
-    if guide_coarse.shape[-2:] != x.shape[-2:]:
-        raise ValueError(f"upsample2_guided: x {tuple(x.shape)}, guide_fine {tuple(guide_fine.shape)} and "
-                         f"guide_coarse {tuple(guide_coarse.shape)} must be (B, C, H, W), (B, G, 2H, 2W), (B, G, H, W)")
-    return apply_guided(x, guided_weights(guide_fine.to(x.dtype), guide_coarse, sigma))
 
 
 def conv1x1(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:

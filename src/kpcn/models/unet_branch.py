@@ -15,6 +15,7 @@ from ..inputs import get_input_spec
 from ..ops.kernel_apply import KernelApply
 from .kernel_heads import (GuidedHead, MultiScaleApply, MultiScaleKernels, _bounded_softmax, albedo_bound,
                            blend_weights, gate_of, gated_albedo)
+from .guided import guide_pyramid
 from .layers import Conv1x1, ReLU, UpAddConv, UpCatConv, kernel_prior_bias, pool2, relu_, transform_input
 from .unet_config import RADIANCE_MIX_INIT, UNetConfig
 
@@ -256,10 +257,7 @@ class UNetBranch(nn.Module):
         if normal is None:
             raise ValueError("UNetBranch: edge_upsample guides the blend with the frame's normal: give it "
                              "(inputs['normal'], (B, 3, H, W))")
-        g = [self._pad(normal.float().clamp(-1.0, 1.0))]
-        for _ in range(cfg.kernel_scales - 1):
-            g.append(pool2(g[-1]))
-        return tuple(g)
+        return tuple(guide_pyramid(self._pad(normal.float().clamp(-1.0, 1.0)), cfg.kernel_scales))
 
     def kernels(self, x: torch.Tensor, summary: torch.Tensor | None = None, normal: torch.Tensor | None = None):
         """Softmax-normalised per-pixel kernels ``(B, k*k, H, W)`` (contiguous).

@@ -104,7 +104,7 @@ class UNetConfig:
         detail_clip: 0 (none) or ``c > 0``: the fit sees the log residual clipped to ``± c`` and no pixel's detail
             exceeds ``c`` (fireflies neither steer the fit nor come back through it).
         edge_upsample: 0 (bilinear) or ``σ > 0``: every 2× upsampling of the coarse-to-fine blend (``kernel_scales``
-            > 1) is joint bilateral on the frame's normal (:func:`kpcn.models.layers.upsample2_guided`, the normal
+            > 1) is joint bilateral on the frame's normal (:func:`kpcn.models.guided.upsample2_guided`, the normal
             and its 2×2-pooled pyramid as the guide, σ in the normal's units), so a coarse level's value does not
             bleed across an edge of the geometry. The model then reads the frame's normal (``inputs["normal"]``,
             ``(B, 3, H, W)``; :attr:`~kpcn.models.DenoiserModel.reads_normal`). An inference setting with no

@@ -29,7 +29,8 @@ from ..ops.kernel_apply import kernel_apply_padded
 from ..ops.fused import feed_native, softmax_apply_native, upsample_guide_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
-from .layers import apply_guided, conv1x1, conv1x1_lowp, guided_weights, pool2, transform_input, upsample2
+from .guided import apply_guided, guide_pyramid, guided_weights
+from .layers import conv1x1, conv1x1_lowp, pool2, transform_input, upsample2
 from .unet_branch import ALBEDO_VARIANCE, UNetBranch
 
 __all__ = ["RowStream", "BAND_ROWS", "clamped_rows"]
@@ -235,9 +236,7 @@ class RowStream:
                                                mix))
             guides = None
             if self._normal is not None:  # the normal's pyramid from half resolution on (the levels combined here)
-                guides = [pool2(self._normal)]
-                for _ in range(cfg.kernel_scales - 2):
-                    guides.append(pool2(guides[-1]))
+                guides = guide_pyramid(pool2(self._normal), cfg.kernel_scales - 1)
                 self._normal_half = guides[0]
             # gains: None each without band_gain
             self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains, guides,

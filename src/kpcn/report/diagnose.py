@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.ndimage import distance_transform_edt, gaussian_filter
 
-from ..data import pair_tensors
+from ..data import model_inputs, pair_tensors
 from ..inputs import radiance_of, split_reconstruct
 from ..io.frame import Frame
 from ..io.read import read_exr
@@ -106,11 +106,8 @@ def diagnose_frame(net, noisy: Frame, ref: Frame, sigma: float = 3.0,
     if set(spec.branches) != {"diffuse", "specular"}:
         raise ValueError(f"diagnose: needs a model with the diffuse/specular split; {spec.name!r} has {spec.branches}")
     t = pair_tensors(noisy, ref, spec)
-    inputs = {k: t[k] for k in (*spec.branches, "albedo")}
-    if net.reads_normal:
-        inputs["normal"] = t["noisy_normal"]
     with torch.no_grad():
-        out = net(inputs)
+        out = net(model_inputs(net, t))
     colour = _hwc(out["color"])
     spec_rad = _hwc(radiance_of(out["specular"]))
     diff_rad = colour - spec_rad
