@@ -22,7 +22,7 @@ from kpcn.config import ConfigError, load_config
 from kpcn.inputs import get_input_spec, list_input_specs
 from kpcn.io import Frame, MissingLayerError
 from kpcn.models import DenoiserModel, create_model, list_models, model_config_class
-from kpcn.models.unet_branch import DeepBlock
+from kpcn.models.unet_branch import DeepBlock, FullResLevel
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAME_RES = (150, 117)  # larger than two halos of the U-Net, not a multiple of its alignment
@@ -59,7 +59,9 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                   "coarse_kernel": 5, "albedo_kernel": 3},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3,
                                   "edge_upsample": 0.5},
-                                 {"kernel_scales": 3, "edge_upsample": 0.3}]}
+                                 {"kernel_scales": 3, "edge_upsample": 0.3},
+                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3,
+                                  "edge_upsample": 0.5, "fullres_channels": 4}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)
@@ -80,6 +82,8 @@ def _sharp(name: str, **kw) -> DenoiserModel:
         for m in model.modules():
             if isinstance(m, DeepBlock):
                 m.conv2.weight.normal_(0.0, 0.05)
+            if isinstance(m, FullResLevel):  # nor does a new full-resolution level (its output at zero)
+                m.out.weight.normal_(0.0, 0.5)
     return model
 
 

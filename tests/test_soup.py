@@ -71,6 +71,18 @@ def test_a_run_with_the_detail_stage_blends_with_one_without_and_keeps_its_stage
     assert blend_files([b, staged], [0.5, 0.5])[0].detail_regression is None
 
 
+def test_settings_without_weights_do_not_make_another_network(two_runs, tmp_path):
+    """The normal-guided blend adds no parameter either (``NO_WEIGHT_SETTINGS``): a file trained with it blends
+    with one without, and the blend takes the first source's."""
+    _, b = two_runs
+    guided = tmp_path / "guided.safetensors"
+    save_weights(guided, _net(1, edge_upsample=0.5))
+    model, _ = blend_files([guided, b], [0.5, 0.5])
+    assert model.config.edge_upsample == 0.5 and model.reads_normal
+    other = blend_files([b, guided], [0.5, 0.5])[0]
+    assert other.config.edge_upsample == 0.0 and not other.reads_normal
+
+
 def test_the_cli_never_overwrites_a_source_and_checks_the_coefficients(two_runs, capsys):
     a, b = two_runs
     before = a.read_bytes()

@@ -50,6 +50,7 @@ from kpcn.losses import create_loss
 from kpcn.metrics import relmse
 from kpcn.models import create_model, list_models, model_config_class, weights_entry
 from kpcn.ops.kernel_apply import PADDING_MODES, kernel_apply
+from kpcn.models.unet_branch import FullResLevel
 
 RES = (24, 24)
 #: CPU-small settings of the registered models (a model not listed here runs with its defaults)
@@ -66,7 +67,8 @@ OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_
                                   {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3},
                                   {"stem": "half", "kernel_scales": 3, "specular_widths": [4, 6, 8, 12]},
                                   {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True},
-                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_mix": True}],
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_mix": True},
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "fullres_channels": 4}],
                    # kernels weighted by albedo ratios (not convex in the colour)
                    "kpcn": [{"input_spec": "color_albedo_normal_noise", "demodulate": True, "out_init_gain": 5.0}]}
 
@@ -97,7 +99,12 @@ RADIANCE = ("color", "diffuse", "specular")
 def _small(variant: str):
     name, kw = VARIANTS[variant]
     torch.manual_seed(0)
-    return create_model(name, **kw)
+    model = create_model(name, **kw)
+    with torch.no_grad():  # a full-resolution level starts at zero (a file's output as it was): give it a say
+        for m in model.modules():
+            if isinstance(m, FullResLevel):
+                m.out.weight.normal_(0.0, 0.5)
+    return model
 
 
 @pytest.fixture(scope="module", params=MODEL_IDS)

@@ -31,7 +31,7 @@ import torch
 
 from .checkpoint import CheckpointError, model_from_record, read_weights, save_weights
 from .inference.paths import check_not_input, check_output_path
-from .models.base import DETAIL_STAGE
+from .models.base import NO_WEIGHT_SETTINGS
 
 __all__ = ["blend_state", "blend_files", "resolve_sources", "main"]
 
@@ -110,10 +110,10 @@ def blend_files(sources: Sequence[str | os.PathLike], alphas: Sequence[float] | 
     records, states = zip(*(read_weights(p) for p in paths))
     # compared as built (a file written before a hyper-parameter existed holds its default)
     built = [model_from_record(r["model"], r["hparams"], st, str(p)) for r, st, p in zip(records, states, paths)]
-    # the detail stage's settings add no parameter: the blend takes the first source's
-    h0 = {k: v for k, v in built[0].hparams().items() if k not in DETAIL_STAGE}
+    # settings that add no parameter (the detail stage, the normal-guided blend): the blend takes the first source's
+    h0 = {k: v for k, v in built[0].hparams().items() if k not in NO_WEIGHT_SETTINGS}
     for p, r, m in zip(paths[1:], records[1:], built[1:]):
-        h = {k: v for k, v in m.hparams().items() if k not in DETAIL_STAGE}
+        h = {k: v for k, v in m.hparams().items() if k not in NO_WEIGHT_SETTINGS}
         if r["model"] != records[0]["model"] or h != h0:
             diff = sorted(k for k in set(h) | set(h0) if h.get(k) != h0.get(k))
             raise CheckpointError(f"soup: {p} is {r['model']} and {paths[0]} is {records[0]['model']}, "

@@ -12,7 +12,7 @@ import re
 import torch
 
 from .config import ConfigError, to_dict
-from .models.base import DETAIL_STAGE
+from .models.base import NO_WEIGHT_SETTINGS
 from .models.registry import create_model, model_config_class
 from .train_config import RunConfig
 
@@ -41,10 +41,11 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     want = to_dict(cfg)["model"]
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
-                  "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks"}
-    # the detail stage's settings and the normal-guided blend (edge_upsample) add no parameter: a file trained
-    # without them starts one trained with them
-    free = {"name", "edge_upsample", *DETAIL_STAGE} | (extendable if cfg.train.init_extend else set())
+                  "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks",
+                  "fullres_channels"}
+    # settings that add no parameter (the detail stage, the normal-guided blend): a file trained without them
+    # starts one trained with them
+    free = {"name", *NO_WEIGHT_SETTINGS} | (extendable if cfg.train.init_extend else set())
     if cfg.train.init_extend:  # U-Net kernels of another size start from the file's (_resize_kernels)
         free |= {"kernel_size", "coarse_kernel"}
     # a file written before a field existed holds that field's default
@@ -198,6 +199,10 @@ def _reopen_blends(model: torch.nn.Module, entries) -> None:
             head.bias[kk] = REOPEN_LOGIT
 
 
+#: what ``train.init_extend`` may add to a file: a coarser kernel level's head, a deep block, a full-resolution level
+ADDABLE = r"(^|\.)(heads\.\d+|deep\.\d+\.conv[12]|fullres\.\w+)\.(weight|bias)$"
+
+
 def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None,
             prune: bool = False) -> dict:
     """``state`` made to fit ``target`` (``train.init_extend``).
@@ -232,9 +237,9 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
     out = dict(state)
     for k, t in target.items():
         if k not in state:
-            if not (k.endswith(".gate") or re.search(r"(^|\.)(heads\.\d+|deep\.\d+\.conv[12])\.(weight|bias)$", k)):
+            if not (k.endswith(".gate") or re.search(ADDABLE, k)):
                 raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate, a coarser "
-                                  f"kernel level or a deep block can be added)")
+                                  f"kernel level, a deep block or a full-resolution level can be added)")
             out[k] = t.detach().clone()
     groups, source_groups = groups or {}, source_groups or {}
     for k, v in state.items():

@@ -56,6 +56,36 @@ class DeepBlock(nn.Module):
         return relu_(h + self.conv2(relu_(self.conv1(h))))
 
 
+class FullResLevel(nn.Module):
+    """``UNetConfig.fullres_channels``: a full-resolution decoder level whose output adds to the full-resolution
+    head's logits, ``out(relu(conv3x3(relu(inp([bilinear_up2(coarse), guide])))))``: ``coarse`` ``(B, Cc, h, w)``
+    (the finest decoder level), ``guide`` ``(B, Cg, 2h, 2w)`` -> ``(B, out, 2h, 2w)`` float32. ``inp`` is a
+    :class:`GuidedHead` (its coarse part runs at half resolution), the 3×3 pads by replicating the edge, and
+    ``out`` starts at zero: a level added to a trained file leaves its output as it was."""
+
+    def __init__(self, coarse: int, guide: int, width: int, out: int) -> None:
+        super().__init__()
+        self.inp = GuidedHead(coarse + guide, width, 1)
+        self.conv = nn.Conv2d(width, width, 3)
+        self.out = Conv1x1(width, out, 1)
+        for m in (self.inp, self.conv):
+            nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+            nn.init.zeros_(m.bias)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, pair, lowp=contextlib.nullcontext) -> torch.Tensor:
+        """``pair`` ``(coarse, guide)``; ``lowp()``: the context the 3×3 runs in (the branch's reduced precision)."""
+        return self.tail(relu_(self.inp(pair)), lowp)
+
+    def tail(self, f: torch.Tensor, lowp=contextlib.nullcontext, pad_rows: bool = True) -> torch.Tensor:
+        """The 3×3 and the output of the first stage's ``relu`` ``f`` ``(B, width, H, W)``; with ``pad_rows=False``
+        only the columns are padded (a band that brings a row each side: ``H - 2`` rows out)."""
+        with lowp():
+            f = relu_(self.conv(F.pad(f, (1, 1, 1, 1) if pad_rows else (1, 1, 0, 0), mode="replicate")))
+        return self.out(f if f.dtype == torch.float32 or not torch.is_grad_enabled() else f.float()).float()
+
+
 class UNetBranch(nn.Module):
     """One branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` filtered colour (channels 0..2).
 
@@ -103,6 +133,9 @@ class UNetBranch(nn.Module):
                 self.head.bias[k * k + self.head_layout[1]:][: ka * ka].copy_(
                     kernel_prior_bias(ka, cfg.init_sigma, cfg.logit_scale))
         self.apply_albedo = KernelApply(ka, "replicate") if ka else None
+        #: UNetConfig.fullres_channels: the full-resolution level added to the head's logits (None: off)
+        self.fullres = FullResLevel(w[0], cfg.guide_channels, cfg.fullres_channels, sum(self.head_layout)) \
+            if off and cfg.fullres_channels else None
         # kernel level lv (resolution 1/2**lv) reads the decoder level lv - off
         kc = cfg.level_kernel(1)
         self.heads = nn.ModuleList(self._make_head(w[lv - off], sum(self.head_segments(lv)), k=kc)
@@ -153,6 +186,11 @@ class UNetBranch(nn.Module):
         if off:
             groups["guide"] = ((cfg.guide_channels,), (get_input_spec(cfg.input_spec).channels,))
         groups["head"] = (None, (w[0], cfg.guide_channels) if off else (w[0],))
+        if self.fullres is not None:
+            f = cfg.fullres_channels
+            groups["fullres.inp"] = ((f,), (w[0], cfg.guide_channels))
+            groups["fullres.conv"] = ((f,), (f,))
+            groups["fullres.out"] = (None, (f,))
         for lv in range(1, cfg.kernel_scales):
             groups[f"heads.{lv - 1}"] = (None, (w[lv - off],))
         return groups
@@ -278,10 +316,15 @@ class UNetBranch(nn.Module):
                 guide = guide.to(self.compute_dtype)  # rounded as the row streams keep it (kpcn.models.unet_rows)
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
-            return _bounded_softmax(self.head(h)[..., :h_in, :w_in], s)
+            z = self.head(h)
+            if self.fullres is not None:
+                z = z + self.fullres(h, functools.partial(self._lowp, z))
+            return _bounded_softmax(z[..., :h_in, :w_in], s)
         kernels, alphas, gains, mixes, albedo = [], [], [], [], None
         for level in range(self.cfg.kernel_scales):
             z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
+            if level == 0 and self.fullres is not None:
+                z = z + self.fullres(h, functools.partial(self._lowp, z))
             kk = self.cfg.level_kernel(level) ** 2
             nb = self.head_layout[1] if level == 0 else z.shape[1] - kk - self.mix
             alpha, gain = blend_weights(z[:, kk:kk + nb])

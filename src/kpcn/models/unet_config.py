@@ -51,6 +51,12 @@ class UNetConfig:
         guide_kernel: ``stem: half``: odd size of the guide's convolution (1: per pixel; 3: each pixel's
             guide also sees its 8 neighbours' features, so the full-resolution kernels can follow edges
             the half-resolution levels cannot place to the pixel), replicate padding at the frame's edges.
+        fullres_channels: ``stem: half``: 0 (off) or ``F > 0``: a full-resolution decoder level of ``F`` channels,
+            ``relu(conv3x3(relu(W · [bilinear_up2(finest decoder level), guide])))`` (the 1×1 of the finest level
+            run at half resolution, as the head's), whose 1×1 output is added to the full-resolution head's
+            logits. The finest level alone places an edge only to its half-resolution pixel; this level combines
+            it with the full-resolution guide through two nonlinearities and a 3×3 neighbourhood. Its output
+            conv starts at zero, so ``train.init_extend`` adds it to a file without it at the file's output.
         band_gain: ``kernel_scales > 1``: every level that blends in a coarser one also predicts a per-pixel
             gain ``β = 2·sigmoid(z)`` in ``[0, 2]`` of its own high band, ``o_l = f_l + α·U(o_{l+1} - D f_l)
             - (1 - β)·(f_l - U D f_l)``: the band a 2×2 pool drops, which the coarse-to-fine blend keeps whole
@@ -130,6 +136,7 @@ class UNetConfig:
     stem: str = "full"
     guide_channels: int = 8
     guide_kernel: int = 1
+    fullres_channels: int = 0
     band_gain: bool = False
     up_kernel: int = 3
     albedo_kernel: int = 0
@@ -177,6 +184,10 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.guide_channels must be >= 1 with stem: half, got {self.guide_channels}")
         if self.guide_kernel < 1 or self.guide_kernel % 2 == 0:
             raise ValueError(f"UNetConfig.guide_kernel must be a positive odd integer, got {self.guide_kernel}")
+        if isinstance(self.fullres_channels, bool) or not isinstance(self.fullres_channels, int) \
+                or self.fullres_channels < 0 or (self.fullres_channels and self.stem != "half"):
+            raise ValueError(f"UNetConfig.fullres_channels must be an integer >= 0 and needs stem: half, got "
+                             f"{self.fullres_channels!r} with stem {self.stem!r}")
         if self.up_kernel not in (1, 3) or isinstance(self.up_kernel, bool):
             raise ValueError(f"UNetConfig.up_kernel must be 1 or 3, got {self.up_kernel!r}")
         if isinstance(self.albedo_kernel, bool) or self.albedo_kernel < 0 or \
@@ -245,7 +256,9 @@ class UNetConfig:
         decoder = sum(s * (1 + c) for s in scales[:-1])
         # stem half: the 2x2 pooling block and the bilinear upsampling back to full resolution (the guide's
         # reach at full resolution, guide_kernel // 2, counts where it exceeds that)
-        return encoder + decoder + (max(3, self.guide_kernel // 2) if self.offset else 0)
+        # (fullres_channels: its 3x3 conv one pixel more)
+        full = max(3, self.guide_kernel // 2) + (1 if self.fullres_channels else 0)
+        return encoder + decoder + (full if self.offset else 0)
 
     @property
     def kernel_radius(self) -> int:

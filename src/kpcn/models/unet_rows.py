@@ -124,6 +124,7 @@ class RowStream:
         self._fed = 0
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
+        self._fr_low = None  # fullres_channels: the first stage's half-resolution part (run())
         self._coarse: dict[str, torch.Tensor] = {}
         #: the albedo at full resolution (a branch with albedo kernels), and with albedo_clamp its bound as a 4th channel
         clamp = bool(branch.albedo_kernel and cfg.albedo_clamp)
@@ -215,6 +216,8 @@ class RowStream:
             self._low, self._low_bias = head.coarse_part(h), None
         else:
             self._low, self._low_bias = conv1x1_lowp(h, head.weight[:, :h.shape[1]]), head.bias
+        if net.fullres is not None:
+            self._fr_low = net.fullres.inp.coarse_part(h)
         if cfg.kernel_scales > 1:  # the coarser kernel levels, combined into one half-resolution result per signal
             kc = cfg.level_kernel(1)
             kk, r = kc**2, kc // 2
@@ -270,6 +273,8 @@ class RowStream:
         z = upsample_guide_native(low, guide, head.weight[:, head.in_channels - guide.shape[1]:, 0, 0])
         if z is None:  # the PyTorch path: the same, in passes
             z = head.add_guide_part_(upsample2(low, context_rows=True), guide)
+        if self._fr_low is not None:
+            z = z.add_(self._fullres_rows(e0, e1))
         _, nb, na, nm = self.branch.head_layout
         alpha, gain = blend_weights(z[:, kk:kk + nb]) if cfg.kernel_scales > 1 else (None, None)
         mix = torch.sigmoid(z[:, kk + nb + na:]) if nm else None
@@ -311,6 +316,15 @@ class RowStream:
                 fi = torch.lerp(u_df, fi, gain[..., i0:i0 + n, :])
             out[key] = fi.addcmul(alpha[..., i0:i0 + n, :], up)
         return out
+
+    def _fullres_rows(self, e0: int, e1: int) -> torch.Tensor:
+        """Rows ``[e0, e1)`` (even) of the full-resolution level's logits (``fullres_channels``): its first stage on
+        two more rows each side (edge rows repeated, as the whole frame's replicate padding repeats them), its 3×3
+        on those."""
+        fr = self.branch.fullres
+        low = clamped_rows(self._fr_low, e0 // 2 - 2, e1 // 2 + 2)
+        f = fr.inp.add_guide_part_(upsample2(low, context_rows=True), clamped_rows(self._guide, e0 - 2, e1 + 2))
+        return fr.tail(f.relu_(), lambda: self.branch._lowp(f), pad_rows=False)[..., 1:-1, :]
 
     def _albedo_rows(self, za: torch.Tensor, e0: int, e1: int) -> torch.Tensor:
         """Rows ``[e0, e1)`` of the albedo the colour is remodulated with, from the head's albedo logits and gate
