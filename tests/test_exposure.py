@@ -6,8 +6,8 @@ import copy
 import numpy as np
 import pytest
 
-from kpcn.exposure import (SCALE_LIMIT, TRAINED_KEYS, TRANSITION, check_exposure_range, exposure_scale, frame_key,
-                           scale_layers)
+from kpcn.exposure import (SCALE_LIMIT, TRAINED_KEYS, TRANSITION, check_exposure_gain, check_exposure_range,
+                           exposure_scale, frame_key, scale_layers)
 from kpcn.inference import denoise, denoise_result, load_model
 from kpcn.io import Frame
 from kpcn.metrics import all_metrics
@@ -21,10 +21,10 @@ def _scaled(frame, s, extra=()):
 
 @pytest.fixture(scope="module")
 def models():
-    """The shipped default, and the same weights with no exposure range (every frame at its own exposure)."""
+    """The shipped default, and the same weights with no exposure range nor gain (every frame at its own exposure)."""
     net = load_model("unet_kpcn", "cpu")
     raw = copy.deepcopy(net)
-    raw.config.exposure_range = None
+    raw.config.exposure_range, raw.config.exposure_gain = None, 1.0
     return net, raw
 
 
@@ -64,6 +64,17 @@ def test_exposure_scale_takes_keys_far_outside_to_the_centre_continuously():
             check_exposure_range(bad)
 
 
+def test_an_exposure_gain_scales_the_frame_before_the_range():
+    rng = (0.1, 1.0)
+    for key in (0.05, 0.2, 0.8, 3.0, 1e-9):
+        assert exposure_scale(key, rng, 1.5) == pytest.approx(1.5 * exposure_scale(1.5 * key, rng), rel=1e-12)
+    assert exposure_scale(0.5, rng, 1.5) == 1.5 and exposure_scale(0.9, rng, 1.5) != 1.5  # 1.35: beyond the range
+    assert exposure_scale(0.5, None, 2.0) == 2.0 and exposure_scale(0.5, rng, 1.0) == 1.0
+    for bad in (0.0, -1.0, 100.0, float("nan"), "x", True):
+        with pytest.raises(ValueError, match="exposure_gain"):
+            check_exposure_gain(bad)
+
+
 def test_scale_layers_scales_radiance_and_its_variance_only():
     a = {n: np.full((2, 2, 3), 2.0, np.float32) for n in ("color", "colorVariance", "albedo", "normal",
                                                           "g.diffuse", "g.diffuseVariance", "other")}
@@ -81,22 +92,34 @@ def test_the_key_of_a_render_hardly_depends_on_its_sample_count(render):
     assert keys[0] > 0 and abs(keys[0] / keys[1] - 1) < 0.25, keys
 
 
-def test_a_frame_inside_the_range_is_denoised_as_it_is(render, models):
+def test_a_frame_inside_the_range_is_denoised_at_the_gain(render, models):
+    """The default's ``exposure_gain`` (1.5): a frame whose key times the gain lies inside the range is denoised at
+    the gain's exposure, and at its own without one."""
     net, raw = models
     frame = render("test:glossy", spp=4, resolution=RES)
     lo, hi = net.exposure_range
-    res = denoise_result(frame, net, device="cpu")
-    assert lo <= res.stats.exposure_key <= hi and res.stats.exposure_scale == 1.0
+    g = net.exposure_gain
+    assert g == 1.5 and raw.exposure_gain == 1.0
+    res = denoise_result(frame, net, device="cpu", precision="float32")
+    assert lo <= g * res.stats.exposure_key <= hi and res.stats.exposure_scale == g
+    at_gain = denoise(_scaled(frame, g), raw, device="cpu", precision="float32") / g
+    np.testing.assert_allclose(res.color, at_gain, rtol=1e-5, atol=1e-6 * at_gain.max())
+    assert np.abs(res.color - denoise(frame, raw, device="cpu", precision="float32")).max() > 1e-4 * at_gain.max()
+    no_gain = copy.deepcopy(raw)
+    no_gain.config.exposure_range = net.exposure_range
+    res = denoise_result(frame, no_gain, device="cpu")
+    assert res.stats.exposure_scale == 1.0
     np.testing.assert_array_equal(res.color, denoise(frame, raw, device="cpu"))
 
 
 def test_frames_far_outside_the_range_are_denoised_at_its_centre(render, models):
-    net, _ = models
+    net, raw = models
     frame = render("test:glossy", spp=4, resolution=RES)
     lo, hi = net.exposure_range
     centre, key = (lo * hi) ** 0.5, frame_key(frame["color"])
-    # float32: in bfloat16 a last-bit difference of a scaled input can round a hidden value the other way
-    at_centre = denoise(_scaled(frame, centre / key), net, device="cpu", precision="float32") / (centre / key)
+    # float32: in bfloat16 a last-bit difference of a scaled input can round a hidden value the other way; the frame
+    # at the centre as it is (raw: the gain would take it to 1.5x the centre)
+    at_centre = denoise(_scaled(frame, centre / key), raw, device="cpu", precision="float32") / (centre / key)
     for e in (1e-3, 1e-12, 1e3, 1e12):
         res = denoise_result(_scaled(frame, e), net, device="cpu", precision="float32")
         assert res.stats.exposure_key * res.stats.exposure_scale == pytest.approx(centre, rel=1e-4)

@@ -72,15 +72,15 @@ def test_a_run_with_the_detail_stage_blends_with_one_without_and_keeps_its_stage
 
 
 def test_settings_without_weights_do_not_make_another_network(two_runs, tmp_path):
-    """The normal-guided blend adds no parameter either (``NO_WEIGHT_SETTINGS``): a file trained with it blends
-    with one without, and the blend takes the first source's."""
+    """The normal-guided blend and the exposure gain add no parameter either (``NO_WEIGHT_SETTINGS``): a file
+    trained with them blends with one without, and the blend takes the first source's."""
     _, b = two_runs
     guided = tmp_path / "guided.safetensors"
-    save_weights(guided, _net(1, edge_upsample=0.5))
+    save_weights(guided, _net(1, edge_upsample=0.5, exposure_gain=1.5))
     model, _ = blend_files([guided, b], [0.5, 0.5])
-    assert model.config.edge_upsample == 0.5 and model.reads_normal
+    assert model.config.edge_upsample == 0.5 and model.exposure_gain == 1.5 and model.reads_normal
     other = blend_files([b, guided], [0.5, 0.5])[0]
-    assert other.config.edge_upsample == 0.0 and not other.reads_normal
+    assert other.config.edge_upsample == 0.0 and other.exposure_gain == 1.0
 
 
 def test_the_cli_never_overwrites_a_source_and_checks_the_coefficients(two_runs, capsys):

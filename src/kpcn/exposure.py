@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "SCALE_LIMIT", "frame_key", "exposure_scale",
-           "scale_layers", "RADIANCE_LAYERS", "check_exposure_range"]
+           "scale_layers", "RADIANCE_LAYERS", "check_exposure_range", "check_exposure_gain"]
 
 #: side of the blocks whose mean luminances the key averages (pixels)
 BLOCK = 16
@@ -83,12 +83,29 @@ def check_exposure_range(key_range, who: str = "exposure_range") -> tuple[float,
     return lo, hi
 
 
-def exposure_scale(key: float, key_range: Sequence[float] | None) -> float:
+def check_exposure_gain(gain, who: str = "exposure_gain") -> float:
+    """``gain`` as a float in ``[1 / 16, 16]``; a clear error otherwise."""
+    try:
+        g = float(gain)
+    except (TypeError, ValueError):
+        raise ValueError(f"{who} must be a number, got {gain!r}") from None
+    if isinstance(gain, bool) or not 1 / 16 <= g <= 16:
+        raise ValueError(f"{who} must be a number in [1/16, 16] (1: the frame's own exposure), got {gain!r}")
+    return g
+
+
+def exposure_scale(key: float, key_range: Sequence[float] | None, gain: float = 1.0) -> float:
     """The factor a frame of exposure ``key`` is denoised at, for a model trained on keys ``key_range``
     ``(lo, hi)``: 1.0 inside the range (and for no range, or a black frame, ``key`` 0). Outside, the factor that
     takes ``key`` to ``bound · (centre / bound)^t``, with ``bound`` the nearer bound, ``centre = sqrt(lo hi)`` and
     ``t = min(1, |log(key / bound)| / log(TRANSITION))``: the centre once the frame is :data:`TRANSITION` × beyond
-    the bound, and continuous in ``key`` everywhere."""
+    the bound, and continuous in ``key`` everywhere.
+
+    ``gain`` (a model's ``exposure_gain``): the frame is first scaled by it, then as above: ``gain ·
+    exposure_scale(gain · key, key_range)``."""
+    if gain != 1.0:
+        check_exposure_gain(gain)
+        return gain * exposure_scale(gain * key, key_range)
     rng = check_exposure_range(key_range)
     if rng is None or not key > 0:
         return 1.0
@@ -108,10 +125,19 @@ def scale_layers(layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str
     out = dict(layers)
     for name, a in layers.items():
         if name in names:
-            out[name] = (a * np.float32(s)).astype(np.float32, copy=False)
+            out[name] = _scaled(a, s)
         elif name.endswith("Variance") and name[: -len("Variance")] in names:  # × s twice: s² may overflow
-            out[name] = (a * np.float32(s) * np.float32(s)).astype(np.float32, copy=False)
+            out[name] = _scaled(_scaled(a, s), s)
     return out
+
+
+def _scaled(a: np.ndarray, s: float) -> np.ndarray:
+    """``a × s`` in float32, values beyond float32's range held at its largest (a huge variance stays a huge finite
+    one, which the features bound and report, rather than turning into an infinity)."""
+    with np.errstate(over="ignore"):
+        out = (a * np.float32(s)).astype(np.float32, copy=False)
+    big = np.finfo(np.float32).max
+    return np.clip(out, -big, big, out=out) if s > 1 else out
 
 
 def _dataset_keys(roots: Sequence[str]) -> None:

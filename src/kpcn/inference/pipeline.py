@@ -20,7 +20,9 @@ How a frame is processed
   band by band (same result to float rounding; ``rows=False`` turns it off).
 * **Exposure**: a model that declares ``exposure_range`` (the default U-Net) denoises a frame whose exposure key
   lies outside it at the range's centre (:func:`kpcn.exposure.exposure_scale`: continuous in the key) — its
-  radiance layers scaled, the result scaled back; a frame inside is denoised as it is.
+  radiance layers scaled, the result scaled back; a frame inside is denoised as it is. A model with an
+  ``exposure_gain`` ``g`` scales every frame by ``g`` first (the range then applies to the key ``g`` times the
+  frame's).
 * **What a frame does not need is left out** (``skip=True``, the default):
 
   - a branch with no positive radiance anywhere in the frame is not run and
@@ -129,8 +131,9 @@ def denoise_result(
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
     # a frame far brighter or darker than the model's training frames is denoised at its range's centre
-    key = frame_key(frame.beauty()) if net.exposure_range is not None else None
-    scale = exposure_scale(key, net.exposure_range) if key is not None else 1.0
+    gain = net.exposure_gain
+    key = frame_key(frame.beauty()) if net.exposure_range is not None or gain != 1.0 else None
+    scale = exposure_scale(key, net.exposure_range, gain) if key is not None else 1.0
     if scale != 1.0:
         frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
                       frame.meta, frame.path, frame.nonfinite)

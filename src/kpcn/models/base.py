@@ -51,7 +51,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..exposure import check_exposure_range
+from ..exposure import check_exposure_gain, check_exposure_range
 from ..inputs import InputSpec, get_input_spec
 
 __all__ = ["DenoiserModel", "check_inputs", "check_detail_config", "DETAIL_STAGE"]
@@ -61,7 +61,7 @@ __all__ = ["DenoiserModel", "check_inputs", "check_detail_config", "DETAIL_STAGE
 DETAIL_STAGE = {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
 #: config fields that change how a model runs but add no parameter (the detail stage, the U-Net's normal-guided
 #: blend): weights trained with or without them are the same network (training's ``train.init``, :mod:`kpcn.soup`)
-NO_WEIGHT_SETTINGS = frozenset({*DETAIL_STAGE, "edge_upsample"})
+NO_WEIGHT_SETTINGS = frozenset({*DETAIL_STAGE, "edge_upsample", "exposure_gain"})
 
 
 class DenoiserModel(nn.Module):
@@ -96,6 +96,12 @@ class DenoiserModel(nn.Module):
         """``(lo, hi)``: the exposure keys (:func:`kpcn.exposure.frame_key`) the weights were trained on (config
         field ``exposure_range``), or None: every frame is denoised at its own exposure."""
         return check_exposure_range(getattr(self.config, "exposure_range", None))
+
+    @property
+    def exposure_gain(self) -> float:
+        """The factor every frame is scaled by before :attr:`exposure_range` applies (config field
+        ``exposure_gain``; 1.0: none): :func:`kpcn.exposure.exposure_scale`."""
+        return check_exposure_gain(getattr(self.config, "exposure_gain", 1.0))
 
     def __init__(self, config: Any) -> None:
         super().__init__()

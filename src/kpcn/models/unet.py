@@ -224,7 +224,14 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
-register_weights("unet_kpcn", "wide64ne", "unet_wide64n.safetensors", default=True,
+register_weights("unet_kpcn", "wide64neg", "unet_wide64n.safetensors", default=True,
+                 config=dict(DETAIL_STAGE, detail_eps=0.001, edge_upsample=0.5, exposure_gain=1.5),
+                 description="unet_kpcn:wide64ne (wide64n's file, its detail stage and normal-guided blend) with every "
+                             "frame denoised at 1.5x its exposure (exposure_gain 1.5, no weights): the network is not "
+                             "exposure-invariant, and at 1.5x it does better on unseen scenes at every spp; chosen on "
+                             "the validation scenes random:920001-920010, 930001-930010 and 940001-940010 "
+                             "(docs/measured.md, forty-first session)")
+register_weights("unet_kpcn", "wide64ne", "unet_wide64n.safetensors",
                  config=dict(DETAIL_STAGE, detail_eps=0.001, edge_upsample=0.5),
                  description="unet_kpcn:wide64n's file and detail stage with the coarse-to-fine blend's upsampling "
                              "guided by the frame's normal (edge_upsample 0.5, no weights): a coarse level's value "

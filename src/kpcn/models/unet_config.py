@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from ..exposure import check_exposure_range
+from ..exposure import check_exposure_gain, check_exposure_range
 from ..inputs import get_input_spec
 from .base import check_detail_config
 from .layers import INPUT_TRANSFORMS
@@ -119,6 +119,11 @@ class UNetConfig:
             the weights were trained on; :func:`kpcn.inference.denoise` denoises a frame whose key lies outside at
             the range's centre and scales its result back (:func:`kpcn.exposure.exposure_scale`). An inference
             setting with no weights, like the detail stage.
+        exposure_gain: ``g``: :func:`kpcn.inference.denoise` scales every frame by ``g`` before the exposure range
+            applies (:func:`kpcn.exposure.exposure_scale`) and its result back. A calibration, measured: the network
+            is not exposure-invariant inside its training range either (its input is ``log1p`` of the radiance),
+            and the shipped weights do better on unseen frames at 1.5× their exposure (docs/measured.md,
+            forty-first session). An inference setting with no weights, like the detail stage.
     """
 
     input_spec: str = "kpcn_split"
@@ -150,10 +155,12 @@ class UNetConfig:
     detail_clip: float = 0.0
     edge_upsample: float = 0.0
     exposure_range: tuple[float, float] | None = None
+    exposure_gain: float = 1.0
 
     def __post_init__(self) -> None:
         spec = get_input_spec(self.input_spec)
         check_exposure_range(self.exposure_range, "UNetConfig.exposure_range")
+        check_exposure_gain(self.exposure_gain, "UNetConfig.exposure_gain")
         if not self.widths or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.widths):
             raise ValueError(f"UNetConfig.widths must be a non-empty list of positive integers, got {self.widths!r}")
         sw = self.specular_widths
