@@ -5,7 +5,8 @@
 # configs/unet_wide64n.yaml, the shipped default's recipe; INIT: the weights it starts from, default
 # unet_kpcn:wide64n, the default's file; LR: the peak rate; SPP_MIX: data.spp_mix, the share of patches whose spp
 # varies per pixel, default 0; EDGE: model.edge_upsample, the normal-guided blend, default 0.5 as the shipped default
-# runs it, 0 bilinear). FIRST: the first scene seed; earlier leases rendered from
+# runs it, 0 bilinear; FULLRES: model.fullres_channels, a full-resolution decoder level added at the file's output
+# and trained with the rest, default 0: none, as the shipped default). FIRST: the first scene seed; earlier leases rendered from
 # 50001 (sixteenth session), 60001 (twenty-sixth and thirty-first) and 71001 (thirty-fifth): pass a fresh one.
 # The step count follows the measured pace: a probe run to step PROBE, then --resume with the fitted
 # train.stage2_steps (the one-cycle schedule ends in time). Weights,
@@ -87,6 +88,8 @@ d.update(root=roots[1], extra_roots=roots[2:], val_root=roots[0], store=str(w / 
          spp_mix=float(os.environ.get("SPP_MIX", 0)))
 # the shipped default runs its blend guided by the normal (edge_upsample 0.5): train as it runs (EDGE=0: bilinear)
 base["model"]["edge_upsample"] = float(os.environ.get("EDGE", 0.5))
+# more full-resolution capacity where the 4-spp error against OIDN lies (the geometry's edges): FULLRES=16
+base["model"]["fullres_channels"] = int(os.environ.get("FULLRES", 0))
 base["train"].update(init=os.environ.get("INIT", "unet_kpcn:wide64n"), init_extend=True, init_reopen=[],
                      batch_size=int(os.environ.get("BATCH", 32)), stage2_lr=float(os.environ.get("LR", 1e-4)), threads=None,
                      val_every=500, ckpt_every=100, keep_checkpoints=20, stage2_steps=100000)
