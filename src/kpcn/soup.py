@@ -110,7 +110,7 @@ def blend_files(sources: Sequence[str | os.PathLike], alphas: Sequence[float] | 
     records, states = zip(*(read_weights(p) for p in paths))
     # compared as built (a file written before a hyper-parameter existed holds its default)
     built = [model_from_record(r["model"], r["hparams"], st, str(p)) for r, st, p in zip(records, states, paths)]
-    # settings that add no parameter (the detail stage, the normal-guided blend): the blend takes the first source's
+    # settings that add no parameter (NO_WEIGHT_SETTINGS): the blend takes the first source's
     h0 = {k: v for k, v in built[0].hparams().items() if k not in NO_WEIGHT_SETTINGS}
     for p, r, m in zip(paths[1:], records[1:], built[1:]):
         h = {k: v for k, v in m.hparams().items() if k not in NO_WEIGHT_SETTINGS}

@@ -43,8 +43,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
                   "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks",
                   "fullres_channels"}
-    # settings that add no parameter (the detail stage, the normal-guided blend): a file trained without them
-    # starts one trained with them
+    # settings that add no parameter (NO_WEIGHT_SETTINGS): a file trained without them starts one trained with them
     free = {"name", *NO_WEIGHT_SETTINGS} | (extendable if cfg.train.init_extend else set())
     if cfg.train.init_extend:  # U-Net kernels of another size start from the file's (_resize_kernels)
         free |= {"kernel_size", "coarse_kernel"}

@@ -130,7 +130,8 @@ def denoise_result(
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
-    # a frame far brighter or darker than the model's training frames is denoised at its range's centre
+    # a frame far brighter or darker than the model's training frames is denoised at its range's centre; a model with
+    # an exposure gain denoises every frame at that many times its exposure first
     gain = net.exposure_gain
     key = frame_key(frame.beauty()) if net.exposure_range is not None or gain != 1.0 else None
     scale = exposure_scale(key, net.exposure_range, gain) if key is not None else 1.0

@@ -60,8 +60,9 @@ __all__ = ["DenoiserModel", "check_inputs", "check_detail_config", "DETAIL_STAGE
 #: the default U-Net; docs/measured.md, twenty-eighth session)
 DETAIL_STAGE = {"detail_radius": 6, "detail_eps": 0.01, "detail_clip": 0.15}
 #: config fields that change how a model runs but add no parameter (the detail stage, the U-Net's normal-guided
-#: blend): weights trained with or without them are the same network (training's ``train.init``, :mod:`kpcn.soup`)
-NO_WEIGHT_SETTINGS = frozenset({*DETAIL_STAGE, "edge_upsample", "exposure_gain"})
+#: blend, the exposure range and gain): weights trained with or without them are the same network (training's
+#: ``train.init``, :mod:`kpcn.soup`)
+NO_WEIGHT_SETTINGS = frozenset({*DETAIL_STAGE, "edge_upsample", "exposure_range", "exposure_gain"})
 
 
 class DenoiserModel(nn.Module):
