@@ -127,6 +127,31 @@ def test_row_stream_refuses_misuse():
         kpcn.row_stream("diffuse", 40, 40)
 
 
+def test_branch_streams_share_one_normal(frame, monkeypatch):
+    """``edge_upsample``: the second branch's stream reads the first's normal buffer (fed once) instead of a copy;
+    the denoised frame is the whole frame's all the same (and the rows == whole tests with the option above)."""
+    model = _model(edge_upsample=0.5, band_gain=True)
+    a, b = model.row_stream("diffuse", 40, 40), model.row_stream("specular", 40, 40)
+    assert a._normal.data_ptr() != b._normal.data_ptr()
+    b.share_normal(a)
+    assert a._normal.data_ptr() == b._normal.data_ptr()
+    plain = _model()
+    c, d = plain.row_stream("diffuse", 40, 40), plain.row_stream("specular", 40, 40)
+    d.share_normal(c)  # no normal read: nothing to share
+    assert c._normal is None and d._normal is None
+    seen = []
+    real = unet_rows.RowStream.share_normal
+    monkeypatch.setattr(unet_rows.RowStream, "share_normal", lambda s, o: seen.append(s is o) or real(s, o))
+    whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False, rows=False, precision="float32")
+    rows = inference.denoise(frame, model, tile=0, device="cpu", skip=False, precision="float32")
+    assert seen == [True, False] and _rel(whole, rows) < 3e-5
+    with torch.inference_mode():
+        e = model.row_stream("diffuse", 40, 40)
+        e.feed(0, torch.zeros(1, 27, 8, 48), albedo=None, normal=torch.zeros(1, 3, 8, 48))
+        with pytest.raises(ValueError, match="before the first feed"):
+            e.share_normal(a)
+
+
 def test_pool2_is_the_2x2_average():
     g = torch.Generator().manual_seed(0)
     x = torch.randn(2, 5, 6, 10, generator=g, dtype=torch.float64)

@@ -72,8 +72,10 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
     layers_out = {p.name: np.empty((h, w, 3), dtype=np.float32) for p in plans}
     streams = {b: net.row_stream(b, h, w, device) for b in branches}
     shared: dict = {}  # the guided blend's tap weights follow from the normal alone: one computation a band for all
+    first = next(iter(streams.values()), None)
     for s in streams.values():
         s.guide_weights_cache = shared
+        s.share_normal(first)  # one copy of the frame's normal (edge_upsample), filled by the first stream
     hp, wp = next(iter(streams.values())).padded_size
     layers = spec.layers_for(branches)
     albedo = torch.empty(1, 3, h, w, device=device)
