@@ -316,15 +316,10 @@ class UNetBranch(nn.Module):
                 guide = guide.to(self.compute_dtype)  # rounded as the row streams keep it (kpcn.models.unet_rows)
             h = (h, guide)  # GuidedHead: the 1x1 conv of [upsample(h), guide] without building either at full size
         if self.cfg.kernel_scales == 1:
-            z = self.head(h)
-            if self.fullres is not None:
-                z = z + self.fullres(h, functools.partial(self._lowp, z))
-            return _bounded_softmax(z[..., :h_in, :w_in], s)
+            return _bounded_softmax(self._full_head(h)[..., :h_in, :w_in], s)
         kernels, alphas, gains, mixes, albedo = [], [], [], [], None
         for level in range(self.cfg.kernel_scales):
-            z = self.head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
-            if level == 0 and self.fullres is not None:
-                z = z + self.fullres(h, functools.partial(self._lowp, z))
+            z = self._full_head(h) if level == 0 else self.heads[level - 1](decoded[level - off])
             kk = self.cfg.level_kernel(level) ** 2
             nb = self.head_layout[1] if level == 0 else z.shape[1] - kk - self.mix
             alpha, gain = blend_weights(z[:, kk:kk + nb])
@@ -343,6 +338,12 @@ class UNetBranch(nn.Module):
                                  tuple(gains) if self.cfg.band_gain else None, albedo,
                                  tuple(mixes) if self.mix else None, self.guide_pyramid(normal),
                                  float(self.cfg.edge_upsample))
+
+    def _full_head(self, h):
+        """The full-resolution head's output for its input ``h`` (with ``stem: half`` the pair (finest level,
+        guide)), the full-resolution level's (``fullres_channels``) added."""
+        z = self.head(h)
+        return z if self.fullres is None else z + self.fullres(h, functools.partial(self._lowp, z))
 
     def filter_albedo(self, albedo: torch.Tensor, ks: MultiScaleKernels) -> torch.Tensor:
         """The albedo ``(B, 3, H, W)`` the colour is remodulated with: ``max(a + g·(K_a ⊛ a - a), 0)`` with the
