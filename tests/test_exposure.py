@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kpcn.exposure import (SCALE_LIMIT, TRAINED_KEYS, TRANSITION, check_exposure_gain, check_exposure_range,
-                           exposure_scale, frame_key, scale_layers)
+                           ScaledLayers, exposure_scale, frame_key, scale_layers)
 from kpcn.inference import denoise, denoise_result, load_model
 from kpcn.io import Frame
 from kpcn.metrics import all_metrics
@@ -84,6 +84,25 @@ def test_scale_layers_scales_radiance_and_its_variance_only():
     for n in ("albedo", "normal", "other"):
         assert out[n] is a[n]
     assert a["color"][0, 0, 0] == 2.0  # the input is not changed
+
+
+def test_scaled_layers_read_as_scale_layers_and_scale_only_the_region_asked_for():
+    rng = np.random.default_rng(1)
+    a = {n: rng.random((6, 5, 3), dtype=np.float32) for n in ("color", "colorVariance", "albedo", "g.diffuse",
+                                                               "g.diffuseVariance", "otherVariance")}
+    lazy, eager = ScaledLayers(a, 2.5, extra=["g.diffuse"]), scale_layers(a, 2.5, extra=["g.diffuse"])
+    assert sorted(lazy) == sorted(eager) and len(lazy) == len(a) and "albedo" in lazy and "x" not in lazy
+    crop = (slice(1, 4), slice(2, 5))
+    for n in a:
+        np.testing.assert_array_equal(lazy[n], eager[n])
+        np.testing.assert_array_equal(lazy.region(n, crop), eager[n][crop])
+    assert lazy["albedo"] is a["albedo"] and lazy["otherVariance"] is a["otherVariance"]  # not radiance: as they are
+    assert lazy.region("color", crop).shape == (3, 3, 3)
+    frame = Frame(lazy)
+    assert frame.shape == (6, 5) and frame.region("colorVariance", crop)[0, 0, 0] == eager["colorVariance"][1, 2, 0]
+    np.testing.assert_array_equal(frame.beauty(), eager["color"])
+    with pytest.raises(KeyError, match="nope"):
+        frame.region("nope")
 
 
 # ------------------------------------------------------------------------------------- on real renders
@@ -175,3 +194,27 @@ def test_light_groups_follow_the_beauty_at_another_exposure(models):
         np.testing.assert_allclose(out[1e-6][k], v, rtol=1e-4, atol=1e-4 * v.max())
     np.testing.assert_allclose(sum(out[1e-4][n] for n in names), out[1e-4]["color"], rtol=1e-4,
                                atol=1e-4 * out[1e-4]["color"].max())
+
+
+@pytest.mark.parametrize("how", ["rows", "tiles"])
+def test_the_gain_scales_bands_and_tiles_as_it_would_the_whole_frame(mi, models, how):
+    """The pipeline scales a frame's radiance as it reads it (:class:`~kpcn.exposure.ScaledLayers`): a frame large
+    enough for row bands, and the same in tiles, with two light groups denoised beside the beauty, equals the same
+    weights without the gain on the frame scaled beforehand; the caller's arrays are left as they were."""
+    from kpcn.render.groups import render_light_groups
+
+    net, raw = models
+    # wide enough that a 48-pixel tile's crop (its halo of 166 either side) is not the whole frame
+    frame = render_light_groups("test:textured", spp=4, seed=2, resolution=(416, 64))
+    before = {n: a.copy() for n, a in frame.layers.items()}
+    names = frame.meta["lightGroups"].split(",")
+    g = net.exposure_gain
+    kw = dict(device="cpu", precision="float32", layers=names, **({"tile": 48, "rows": False} if how == "tiles" else {}))
+    res = denoise_result(frame, net, **kw)
+    assert res.stats.exposure_scale == g and (res.stats.row_bands > 0) == (how == "rows")
+    assert res.stats.tiles == (1 if how == "rows" else 2 * 9)
+    want = denoise(_scaled(frame, g, [f"{n}.{p}" for n in names for p in ("diffuse", "specular")]), raw, **kw)
+    for name, v in (("color", res.color), *res.layers.items()):
+        np.testing.assert_allclose(v, want[name] / g, rtol=1e-5, atol=1e-6 * want["color"].max() / g, err_msg=name)
+    for n, a in frame.layers.items():
+        np.testing.assert_array_equal(a, before[n], err_msg=n)

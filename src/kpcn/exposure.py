@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "SCALE_LIMIT", "frame_key", "exposure_scale",
-           "scale_layers", "RADIANCE_LAYERS", "check_exposure_range", "check_exposure_gain"]
+           "scale_layers", "ScaledLayers", "RADIANCE_LAYERS", "check_exposure_range", "check_exposure_gain"]
 
 #: side of the blocks whose mean luminances the key averages (pixels)
 BLOCK = 16
@@ -121,14 +121,47 @@ def exposure_scale(key: float, key_range: Sequence[float] | None, gain: float = 
 def scale_layers(layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str] = ()) -> dict[str, np.ndarray]:
     """A copy of ``layers`` with every radiance layer (:data:`RADIANCE_LAYERS` and ``extra``, e.g. light groups)
     × ``s`` and its ``<name>Variance`` × ``s²``; other layers (albedo, normal, depth) are the same arrays."""
-    names = set(RADIANCE_LAYERS) | set(extra)
-    out = dict(layers)
-    for name, a in layers.items():
-        if name in names:
-            out[name] = _scaled(a, s)
-        elif name.endswith("Variance") and name[: -len("Variance")] in names:  # × s twice: s² may overflow
-            out[name] = _scaled(_scaled(a, s), s)
-    return out
+    return dict(ScaledLayers(layers, s, extra))
+
+
+class ScaledLayers(Mapping):
+    """``layers`` as :func:`scale_layers` gives them, each scaled when it is read rather than all copied at once.
+
+    A :class:`~kpcn.io.Frame` over these (``Frame(ScaledLayers(frame.layers, s), ...)``) reads as the scaled frame,
+    and :meth:`region` scales only the rows and columns asked for: :func:`kpcn.inference.denoise` denoises a frame
+    at another exposure a band of rows at a time without holding a scaled copy of every radiance layer and variance
+    (up to 150 MB at 1920×1080). Reading a whole layer returns a new scaled array each time (the other layers are
+    the same arrays, unscaled); :attr:`raw` is the mapping underneath.
+    """
+
+    def __init__(self, layers: Mapping[str, np.ndarray], s: float, extra: Sequence[str] = ()) -> None:
+        names = set(RADIANCE_LAYERS) | set(extra)
+        self.raw, self.scale = layers, float(s)
+        #: how many factors ``s`` each scaled layer takes: 1 for radiance, 2 for its variance (× s twice: s² may
+        #: overflow where s does not)
+        self.powers = {n: 1 if n in names else 2 for n in layers
+                       if n in names or (n.endswith("Variance") and n[: -len("Variance")] in names)}
+
+    def region(self, name: str, crop=None) -> np.ndarray:
+        """Layer ``name`` over ``crop`` (a ``(rows, columns)`` pair of slices; None: all of it), scaled."""
+        a = self.raw[name]
+        if crop is not None:
+            a = a[crop]
+        for _ in range(self.powers.get(name, 0)):
+            a = _scaled(a, self.scale)
+        return a
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.region(name)
+
+    def __contains__(self, name) -> bool:
+        return name in self.raw
+
+    def __iter__(self):
+        return iter(self.raw)
+
+    def __len__(self) -> int:
+        return len(self.raw)
 
 
 def _scaled(a: np.ndarray, s: float) -> np.ndarray:

@@ -68,7 +68,7 @@ def frame_to_tensors(frame: Frame, layers=INPUT_LAYERS, crop=None, device=None, 
     frame.require(layers)
     out = {}
     for n in layers:
-        a = frame[n] if crop is None else frame[n][crop]
+        a = frame.region(n, crop)  # only the crop of a layer computed when read (kpcn.exposure.ScaledLayers)
         if contiguous:
             a = np.ascontiguousarray(a.transpose(2, 0, 1))
             t = torch.from_numpy(a)[None].float()

@@ -153,7 +153,7 @@ class InputSpec:
 
     def branch_is_zero(self, frame, branch: str, crop=(slice(None), slice(None))) -> bool:
         """Whether ``branch`` has no positive radiance in ``frame`` over ``crop`` (its output is then 0)."""
-        return not np.any(frame[self.branch_layers[branch][0]][crop] > 0)
+        return not np.any(frame.region(self.branch_layers[branch][0], crop) > 0)
 
 
 _SPECS: dict[str, InputSpec] = {}

@@ -79,7 +79,7 @@ def plan_aovs(frame: Frame, names, spec: InputSpec, aov_branch: str | None = Non
 
 def noisy_aov(frame: Frame, plan: AovPlan, region) -> np.ndarray:
     """The noisy value of a requested layer over ``region`` (its parts summed)."""
-    return sum(np.maximum(frame[layer][region], 0.0) if plan.group else frame[layer][region]
+    return sum(np.maximum(frame.region(layer, region), 0.0) if plan.group else frame.region(layer, region)
                for layer in plan.parts.values())
 
 

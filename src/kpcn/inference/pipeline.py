@@ -45,7 +45,7 @@ import warnings
 import numpy as np
 import torch
 
-from ..exposure import exposure_scale, frame_key, scale_layers
+from ..exposure import ScaledLayers, exposure_scale, frame_key
 from ..features import frame_to_tensors
 from ..io import SAMPLE_COUNT, Frame
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
@@ -136,7 +136,8 @@ def denoise_result(
     key = frame_key(frame.beauty()) if net.exposure_range is not None or gain != 1.0 else None
     scale = exposure_scale(key, net.exposure_range, gain) if key is not None else 1.0
     if scale != 1.0:
-        frame = Frame(scale_layers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
+        # scaled when read: a band's or a tile's rows at a time, no scaled copy of every radiance layer held
+        frame = Frame(ScaledLayers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
                       frame.meta, frame.path, frame.nonfinite)
     stats.exposure_key, stats.exposure_scale = key, scale
 

@@ -67,7 +67,7 @@ def denoise_rows(frame: Frame, net, spec, frame_value, branches, device, plans=(
     """
     band = int(band or unet_rows.BAND_ROWS)
     band += band % 2
-    h, w = frame[spec.layers[0]].shape[:2]
+    h, w = frame.shape
     out = np.empty((h, w, 3), dtype=np.float32)
     layers_out = {p.name: np.empty((h, w, 3), dtype=np.float32) for p in plans}
     streams = {b: net.row_stream(b, h, w, device) for b in branches}

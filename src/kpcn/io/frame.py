@@ -90,9 +90,21 @@ class Frame:
         meta = {**self.meta, "layers_from": {**self.meta.get("layers_from", {}), **swaps}}
         return Frame(layers, meta, self.path, dict(self.nonfinite))
 
+    def region(self, name: str, crop=None) -> np.ndarray:
+        """Layer ``name`` over ``crop`` (a ``(rows, columns)`` pair of slices; None: all of it). For layers computed
+        when read (:class:`kpcn.exposure.ScaledLayers`) only that region is computed."""
+        if name not in self.layers:
+            raise MissingLayerError(self.path or "frame", [name], self.layers)
+        region = getattr(self.layers, "region", None)
+        if region is not None:
+            return region(name, crop)
+        a = self.layers[name]
+        return a if crop is None else a[crop]
+
     @property
     def shape(self) -> tuple[int, int]:
-        h, w = next(iter(self.layers.values())).shape[:2]
+        arrays = getattr(self.layers, "raw", self.layers)  # a computed layer's shape is its source's
+        h, w = next(iter(arrays.values())).shape[:2]
         return h, w
 
     @property
@@ -110,8 +122,10 @@ class Frame:
     def beauty(self) -> np.ndarray:
         """The noisy colour ``(H, W, 3)``: the ``color`` layer, or ``diffuse + specular`` where the frame has only
         the split (a missing one is named by :class:`MissingLayerError`)."""
-        if "color" in self.layers and self.layers["color"].shape[2] == 3:
-            return self.layers["color"]
+        if "color" in self.layers:
+            color = self.layers["color"]
+            if color.shape[2] == 3:
+                return color
         return self["diffuse"] + self["specular"]
 
     def require(self, names: Iterable[str]) -> None:
