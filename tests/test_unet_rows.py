@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from kpcn import inference
 from kpcn.features import frame_to_tensors
+from kpcn.io import Frame
 from kpcn.inference.rows import denoise_rows, supports_rows
 from kpcn.models import create_model
 from kpcn.models import unet_rows
@@ -139,12 +140,19 @@ def test_branch_streams_share_one_normal(frame, monkeypatch):
     c, d = plain.row_stream("diffuse", 40, 40), plain.row_stream("specular", 40, 40)
     d.share_normal(c)  # no normal read: nothing to share
     assert c._normal is None and d._normal is None
-    seen = []
+    seen, pyramids = [], []
     real = unet_rows.RowStream.share_normal
     monkeypatch.setattr(unet_rows.RowStream, "share_normal", lambda s, o: seen.append(s is o) or real(s, o))
+    real_pyr = unet_rows.guide_pyramid
+    monkeypatch.setattr(unet_rows, "guide_pyramid", lambda *a: pyramids.append(1) or real_pyr(*a))
     whole = inference.denoise(frame, model, tile=0, device="cpu", skip=False, rows=False, precision="float32")
     rows = inference.denoise(frame, model, tile=0, device="cpu", skip=False, precision="float32")
     assert seen == [True, False] and _rel(whole, rows) < 3e-5
+    assert len(pyramids) == 1  # the normal's half-resolution pyramid too: once for both streams
+    # a normal beyond [-1, 1] (unnormalised): the bands clamp the blend's guide as the whole frame's path does
+    big = Frame({**frame.layers, "normal": frame["normal"] * np.float32(3.0)}, dict(frame.meta))
+    whole = inference.denoise(big, model, tile=0, device="cpu", skip=False, rows=False, precision="float32")
+    assert _rel(whole, inference.denoise(big, model, tile=0, device="cpu", skip=False, precision="float32")) < 3e-5
     with torch.inference_mode():
         e = model.row_stream("diffuse", 40, 40)
         e.feed(0, torch.zeros(1, 27, 8, 48), albedo=None, normal=torch.zeros(1, 3, 8, 48))

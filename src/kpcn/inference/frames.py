@@ -121,10 +121,11 @@ def color_variance(frame: Frame) -> np.ndarray | None:
 
 def normal_of(frame: Frame, crop, device):
     """The frame's normal over ``crop`` (a ``(rows, columns)`` pair of slices) as a ``(1, 3, h, w)`` float32 tensor
-    in [-1, 1] (finite: the reader replaced what was not)."""
+    (finite: the reader replaced what was not). Not clamped here: the models that read it clamp it to [-1, 1]
+    themselves (``UNetBranch.guide_pyramid``, ``RowStream.feed``), as the contract's normal promises."""
     from ..features import frame_to_tensors
 
-    return frame_to_tensors(frame, ("normal",), crop, device)["normal"].clamp_(-1.0, 1.0)
+    return frame_to_tensors(frame, ("normal",), crop, device)["normal"]
 
 
 def with_normal(net, inputs: dict, frame: Frame, crop, device) -> dict:

@@ -152,7 +152,7 @@ class RowStream:
                 raise ValueError("RowStream.feed: this branch guides its blend by the normal (edge_upsample): give "
                                  "each band's normal")
             if not self._normal_shared:
-                self._normal[..., r0:r0 + n, :] = normal.clamp(-1.0, 1.0)
+                self._normal[..., r0:r0 + n, :].copy_(normal).clamp_(-1.0, 1.0)
         if self._albedo is not None:
             if albedo is None:
                 raise ValueError("RowStream.feed: this branch filters the albedo (albedo_kernel): give each band's albedo")
@@ -251,12 +251,23 @@ class RowStream:
                                                mix))
             guides = None
             if self._normal is not None:  # the normal's pyramid from half resolution on (the levels combined here)
-                guides = guide_pyramid(pool2(self._normal), cfg.kernel_scales - 1)
+                guides = self._normal_pyramid(cfg.kernel_scales - 1)
                 self._normal_half = guides[0]
             # gains: None each without band_gain
             self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains, guides,
                                                                  float(cfg.edge_upsample)))
         self._half = {}
+
+    def _normal_pyramid(self, levels: int) -> tuple[torch.Tensor, ...]:
+        """The normal pooled to half resolution and ``levels - 1`` coarser levels; computed once for the streams
+        that share the normal buffer (:meth:`share_normal`) and the cache (:attr:`guide_weights_cache`)."""
+        cache, key = self.guide_weights_cache, ("pyramid", levels, self._normal.data_ptr(), tuple(self._normal.shape))
+        if cache is not None and key in cache:
+            return cache[key]
+        guides = tuple(guide_pyramid(pool2(self._normal), levels))
+        if cache is not None:
+            cache[key] = guides
+        return guides
 
     @property
     def signals(self) -> dict[str, torch.Tensor]:
