@@ -135,6 +135,9 @@ def denoise_result(
     gain = net.exposure_gain
     key = frame_key(frame.beauty()) if net.exposure_range is not None or gain != 1.0 else None
     scale = exposure_scale(key, net.exposure_range, gain) if key is not None else 1.0
+    # the frame at its own exposure: what a scale does not change (which branches and tiles are zero, the no-hit
+    # tiles' noise test) is read from it, with no scaled copy made
+    own = frame
     if scale != 1.0:
         # scaled when read: a band's or a tile's rows at a time, no scaled copy of every radiance layer held
         frame = Frame(ScaledLayers(frame.layers, scale, [v for p in plans for v in p.parts.values()]),
@@ -143,14 +146,15 @@ def denoise_result(
 
     # branches whose kernels filter plain layers run everywhere (on a zero branch a kernel predictor's output is 0)
     needed = {b for p in plans if not p.group for b in p.parts}
-    active = [b for b in spec.branches if b in needed or not (skip and spec.branch_is_zero(frame, b))]
+    active = [b for b in spec.branches if b in needed or not (skip and spec.branch_is_zero(own, b))]
     stats.branches_skipped = tuple(b for b in spec.branches if b not in active)
     frame_value = spec.frame_value(frame)  # the depth scale or noise precision of the whole frame, given to each tile
     frame_value = frame_value.to(dev) if frame_value is not None else None
     if spec.frame_stat is not None and frame_value is not None:
         stats.noise_precision = float(frame_value.reshape(-1)[0])
     color_in = frame.beauty()
-    var_in = color_variance(frame) if skip and "depth" in frame else None
+    var_in = color_variance(own) if skip and "depth" in frame else None
+    own_color = own.beauty() if var_in is not None else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
     stats.precision = str(dtype).removeprefix("torch.")
@@ -172,7 +176,7 @@ def denoise_result(
             stats.tiles += 1
             crop = t.crop
             if var_in is not None and not np.any(frame["depth"][crop] > 0):
-                if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * color_in[crop])):
+                if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * own_color[crop])):
                     out[t.interior] = np.maximum(color_in[t.interior], 0.0)
                     for p in plans:
                         aov_out[p.name][t.interior] = noisy_aov(frame, p, t.interior)
@@ -182,7 +186,7 @@ def denoise_result(
                     continue
             run = list(active)
             if skip and net.zero_preserving:
-                run = [b for b in active if b in needed or not spec.branch_is_zero(frame, b, crop)]
+                run = [b for b in active if b in needed or not spec.branch_is_zero(own, b, crop)]
             for b in spec.branches:
                 stats.branch_tiles_run[b] += b in run
                 stats.branch_tiles_skipped[b] += b not in run
