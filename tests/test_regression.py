@@ -112,6 +112,11 @@ def test_bands_of_rows_give_the_whole_frame_result(stride):
     for band in (16, 38):
         torch.testing.assert_close(residual_regression_rows(denoised, noisy, guide, radius=3, eps=0.02, band=band,
                                                             stride=stride), whole, rtol=1e-10, atol=1e-12)
+    # the noisy colour given at another exposure and its scale (the pipeline's exposure gain): scaled a band at a time
+    for band in (16, 1000):  # bands, and the whole frame at once
+        torch.testing.assert_close(residual_regression_rows(denoised, noisy / 1.5, guide, radius=3, eps=0.02, band=band,
+                                                            stride=stride, noisy_scale=1.5), whole, rtol=1e-10,
+                                   atol=1e-12)
 
 
 @pytest.mark.parametrize("stride", [1, 2])

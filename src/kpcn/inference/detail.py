@@ -29,7 +29,7 @@ def _t(a: np.ndarray) -> torch.Tensor:
 
 
 def refine_detail(color: np.ndarray, noisy: np.ndarray, normal: np.ndarray, radius: int, eps: float,
-                  clip: float | None = None, layers: dict[str, np.ndarray] | None = None
+                  clip: float | None = None, layers: dict[str, np.ndarray] | None = None, noisy_scale: float = 1.0
                   ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The denoised ``color`` with the normal-guided detail of its residual to ``noisy`` added back.
 
@@ -39,12 +39,14 @@ def refine_detail(color: np.ndarray, noisy: np.ndarray, normal: np.ndarray, radi
         normal: ``(H, W, 3)`` the frame's first-hit normal (0 where nothing was hit: a flat guide, no change).
         radius, eps, clip: the regression's window radius, ridge and clip (:func:`~kpcn.ops.residual_regression`).
         layers: denoised layers that add up to ``color`` (light groups), scaled by the same per-pixel ratio.
+        noisy_scale: ``noisy`` × this is the noisy colour at the exposure ``color`` was denoised at (scaled a band
+            at a time: no scaled copy of the frame's colour).
     Returns:
         ``(color, layers)``: new arrays, float32.
     """
     with torch.inference_mode():
         out = residual_regression_rows(_t(color), _t(noisy), _t(normal), radius=radius, eps=eps, stride=2,
-                                       clip=clip)
+                                       clip=clip, noisy_scale=noisy_scale)
     refined = np.ascontiguousarray(out[0].permute(1, 2, 0).numpy(), dtype=np.float32)
     scaled = {}
     if layers:

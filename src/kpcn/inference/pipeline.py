@@ -152,9 +152,8 @@ def denoise_result(
     frame_value = frame_value.to(dev) if frame_value is not None else None
     if spec.frame_stat is not None and frame_value is not None:
         stats.noise_precision = float(frame_value.reshape(-1)[0])
-    color_in = frame.beauty()
+    color_in = own.beauty()  # the noisy colour at its own exposure (× scale where it is used with the denoised)
     var_in = color_variance(own) if skip and "depth" in frame else None
-    own_color = own.beauty() if var_in is not None else None
 
     out = np.empty((h, w, 3), dtype=np.float32)
     stats.precision = str(dtype).removeprefix("torch.")
@@ -176,8 +175,8 @@ def denoise_result(
             stats.tiles += 1
             crop = t.crop
             if var_in is not None and not np.any(frame["depth"][crop] > 0):
-                if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * own_color[crop])):
-                    out[t.interior] = np.maximum(color_in[t.interior], 0.0)
+                if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * color_in[crop])):
+                    out[t.interior] = np.maximum(color_in[t.interior] * np.float32(scale), 0.0)
                     for p in plans:
                         aov_out[p.name][t.interior] = noisy_aov(frame, p, t.interior)
                     stats.tiles_passed_through += 1
@@ -218,7 +217,7 @@ def denoise_result(
         if detail is not None and stats.tiles_run:  # after the network, on the assembled frame (tiled == untiled)
             td = time.perf_counter()
             groups = {p.name: aov_out[p.name] for p in plans if p.group}  # parts of the beauty: they keep adding up
-            out, refined = refine_detail(out, color_in, frame["normal"], *detail, layers=groups)
+            out, refined = refine_detail(out, color_in, frame["normal"], *detail, layers=groups, noisy_scale=scale)
             aov_out.update(refined)
             stats.detail_radius, stats.detail_seconds = detail[0], time.perf_counter() - td
     if scale != 1.0:  # back to the frame's own exposure

@@ -186,25 +186,28 @@ def regression_reach(radius: int, stride: int = 1) -> int:
 
 def residual_regression_rows(denoised: torch.Tensor, noisy: torch.Tensor, guide: torch.Tensor, *, radius: int = 5,
                              eps: float = 0.01, bound: bool = True, stride: int = 1, clip: float | None = None,
-                             band: int = 128) -> torch.Tensor:
+                             band: int = 128, noisy_scale: float = 1.0) -> torch.Tensor:
     """:func:`residual_regression` a band of ``band`` rows at a time, each with the rows it reads above and below
     (:func:`regression_reach`; bands start on even rows, so a stride-2 band samples the rows the frame does):
     the same result in a fraction of the memory.
 
-    Args and returns as :func:`residual_regression`.
+    Args and returns as :func:`residual_regression`; ``noisy_scale``: ``noisy`` is multiplied by it, a band at a time.
     """
+    def scaled(x: torch.Tensor) -> torch.Tensor:
+        return x if noisy_scale == 1.0 else x * noisy_scale
+
     h = denoised.shape[-2]
     reach = regression_reach(radius, stride)
     reach += reach % 2
     band += band % 2
     if h <= band + 2 * reach:
-        return residual_regression(denoised, noisy, guide, radius=radius, eps=eps, bound=bound, stride=stride,
+        return residual_regression(denoised, scaled(noisy), guide, radius=radius, eps=eps, bound=bound, stride=stride,
                                    clip=clip)
     out = torch.empty_like(denoised)
     for y0 in range(0, h, band):
         y1 = min(h, y0 + band)
         lo, hi = max(0, y0 - reach), min(h, y1 + reach)
-        part = residual_regression(denoised[..., lo:hi, :], noisy[..., lo:hi, :], guide[..., lo:hi, :],
+        part = residual_regression(denoised[..., lo:hi, :], scaled(noisy[..., lo:hi, :]), guide[..., lo:hi, :],
                                    radius=radius, eps=eps, bound=bound, stride=stride, clip=clip)
         out[..., y0:y1, :] = part[..., y0 - lo:y1 - lo, :]
     return out
