@@ -16,7 +16,8 @@ thirty-eighth session). The key measures a frame's brightness robustly:
 It hardly depends on the sample count (procedural scenes: 2 spp and 256 spp within a few per cent). A model declares
 ``exposure_range = (lo, hi)``, the keys of the frames it was trained on. Inside the range nothing is scaled: the
 result is what the model gives the frame as it is. A frame whose key lies outside is denoised at the key
-:func:`exposure_scale` gives — every radiance layer × ``s``, its variance × ``s²`` (:func:`scale_layers`) — and
+:func:`exposure_scale` gives — every radiance layer × ``s``, its variance × ``s²`` (:func:`scale_layers`, or
+:class:`ScaledLayers` as it is read) — and
 the result divided by ``s`` (:func:`kpcn.inference.denoise`): the range's centre ``sqrt(lo hi)`` for a frame more than
 :data:`TRANSITION` × beyond a bound, and between the bound and the centre (log-linear in the key) in that last
 factor, so that the result changes continuously with the exposure. The centre rather than the nearer bound: at a

@@ -22,7 +22,9 @@ How a frame is processed
   lies outside it at the range's centre (:func:`kpcn.exposure.exposure_scale`: continuous in the key) — its
   radiance layers scaled, the result scaled back; a frame inside is denoised as it is. A model with an
   ``exposure_gain`` ``g`` scales every frame by ``g`` first (the range then applies to the key ``g`` times the
-  frame's).
+  frame's). The radiance is scaled as it is read, a band's or a tile's rows at a time
+  (:class:`kpcn.exposure.ScaledLayers`, ``Frame.region``; the detail stage's noisy colour too): no scaled copy of
+  the frame is held.
 * **What a frame does not need is left out** (``skip=True``, the default):
 
   - a branch with no positive radiance anywhere in the frame is not run and
