@@ -327,7 +327,9 @@ def _prepare_workers(workers: int | None, n_stale: int, spec: InputSpec) -> int:
 
 
 def _one_thread() -> None:
+    """A preparing worker's initializer: one torch thread and one OpenEXR thread (the workers share the CPUs)."""
     torch.set_num_threads(1)
+    os.environ.setdefault("KPCN_EXR_THREADS", "1")
 
 
 def _build_named(job) -> Entry:

@@ -12,6 +12,8 @@ same run (a ratio):
   patch store, with and without DataLoader workers (:mod:`.data`)
 * ``denoise`` — whole-frame denoising against Intel OIDN; ``--skip`` the time saved
   by leaving out what a scene does not need (:mod:`.denoise`, :mod:`.skip`)
+* ``exr``     — reading and writing a render's EXR with OpenEXR's thread pool against its
+  single thread (:mod:`.exr`)
 
 Subcommands live in :data:`SUBCOMMANDS`, a dict mapping the name to a function
 ``fn(argv: list[str]) -> int`` that parses its own options.
@@ -38,6 +40,7 @@ SUBCOMMANDS: dict[str, Callable[[list[str]], int]] = {
     "denoise": _lazy("denoise", "bench_denoise"),
     "aov": _lazy("aov", "bench_aov"),
     "data": _lazy("data", "bench_data"),
+    "exr": _lazy("exr", "bench_exr"),
 }
 
 def main(argv: list[str] | None = None) -> int:

@@ -15,6 +15,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .exr_threads import exr_threads
 from .frame import ExrError
 
 
@@ -102,6 +103,7 @@ def _read_parts(path: str) -> tuple[list[_Part], list[str]]:
     and the descriptions of the parts that could not be read."""
     import OpenEXR
 
+    exr_threads()
     try:
         with OpenEXR.File(path, separate_channels=True) as f:
             parts = [

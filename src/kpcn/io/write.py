@@ -7,6 +7,7 @@ from typing import Mapping
 import numpy as np
 
 from .atomic import atomic_write
+from .exr_threads import exr_threads
 from .frame import WINDOW_KEYS, _window
 from .names import _channel_names
 
@@ -76,5 +77,7 @@ def write_exr(
 
     def _write(tmp: str) -> None:
         OpenEXR.File(header, channels).write(tmp)
+
+    exr_threads()
 
     atomic_write(path, _write)
