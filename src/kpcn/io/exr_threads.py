@@ -54,12 +54,15 @@ def _set(n: int) -> None:
 
 def _before_fork() -> None:
     if _state["count"]:
+        import OpenEXR
+
+        _state["saved"] = OpenEXR.global_thread_count()  # kpcn's count, or one the application set since
         _set(0)  # join the pool's threads while they exist
 
 
 def _after_fork_in_parent() -> None:
-    if _state["count"]:
-        _set(_state["count"])
+    if _state["count"] and _state.get("saved"):
+        _set(_state["saved"])
 
 
 def _after_fork_in_child() -> None:
