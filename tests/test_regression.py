@@ -160,3 +160,25 @@ def test_shapes_are_checked():
         residual_regression(denoised, denoised, guide, eps=0.0)
     with pytest.raises(ValueError, match="stride must be 1 or 2"):
         residual_regression(denoised, denoised, guide, stride=3)
+
+
+@pytest.mark.parametrize("path", ["native", "pytorch"])
+def test_a_scaled_noisy_colour_beyond_float32_stays_finite(path, monkeypatch):
+    """``noisy_scale`` holds a product beyond float32's range at its largest, as the exposure's scaled layers do: a
+    3e38 pixel at 1.5× gives the result of the saturated colour, finite, not an infinity (the native pass and the
+    PyTorch one)."""
+    if path == "pytorch":
+        import kpcn.ops.regression as regression
+
+        monkeypatch.setattr(regression, "residual_regression_native", lambda *a, **k: None)
+    denoised, guide, g = _pair(6, 40, 24)
+    denoised, guide = denoised.float(), guide.float()
+    noisy = denoised * torch.exp(0.3 * torch.randn(denoised.shape, generator=g)).float()
+    noisy[0, :, 20, 12] = 3e38
+    saturated = (noisy.double() * 1.5).clamp(max=torch.finfo(torch.float32).max).float()
+    for band in (16, 1000):
+        got = residual_regression_rows(denoised, noisy, guide, radius=3, eps=0.02, band=band, stride=2,
+                                       noisy_scale=1.5)
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, residual_regression_rows(denoised, saturated, guide, radius=3, eps=0.02,
+                                                                 band=band, stride=2))

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["BLOCK", "KEY_EPS", "TRANSITION", "TRAINED_KEYS", "LUMINANCE", "SCALE_LIMIT", "frame_key", "exposure_scale",
-           "scale_layers", "ScaledLayers", "RADIANCE_LAYERS", "check_exposure_range", "check_exposure_gain"]
+           "scale_layers", "ScaledLayers", "scale_array", "RADIANCE_LAYERS", "check_exposure_range", "check_exposure_gain"]
 
 #: side of the blocks whose mean luminances the key averages (pixels)
 BLOCK = 16
@@ -149,7 +149,7 @@ class ScaledLayers(Mapping):
         if crop is not None:
             a = a[crop]
         for _ in range(self.powers.get(name, 0)):
-            a = _scaled(a, self.scale)
+            a = scale_array(a, self.scale)
         return a
 
     def __getitem__(self, name: str) -> np.ndarray:
@@ -165,7 +165,7 @@ class ScaledLayers(Mapping):
         return len(self.raw)
 
 
-def _scaled(a: np.ndarray, s: float) -> np.ndarray:
+def scale_array(a: np.ndarray, s: float) -> np.ndarray:
     """``a × s`` in float32, values beyond float32's range held at its largest (a huge variance stays a huge finite
     one, which the features bound and report, rather than turning into an infinity)."""
     with np.errstate(over="ignore"):

@@ -47,7 +47,7 @@ import warnings
 import numpy as np
 import torch
 
-from ..exposure import ScaledLayers, exposure_scale, frame_key
+from ..exposure import ScaledLayers, exposure_scale, frame_key, scale_array
 from ..features import frame_to_tensors
 from ..io import SAMPLE_COUNT, Frame
 from .aovs import denoise_aovs, noisy_aov, plan_aovs
@@ -178,7 +178,7 @@ def denoise_result(
             crop = t.crop
             if var_in is not None and not np.any(frame["depth"][crop] > 0):
                 if np.all(var_in[crop] <= np.square(PASSTHROUGH_REL_STD * color_in[crop])):
-                    out[t.interior] = np.maximum(color_in[t.interior] * np.float32(scale), 0.0)
+                    out[t.interior] = np.maximum(scale_array(color_in[t.interior], scale), 0.0)
                     for p in plans:
                         aov_out[p.name][t.interior] = noisy_aov(frame, p, t.interior)
                     stats.tiles_passed_through += 1

@@ -193,8 +193,11 @@ def residual_regression_rows(denoised: torch.Tensor, noisy: torch.Tensor, guide:
 
     Args and returns as :func:`residual_regression`; ``noisy_scale``: ``noisy`` is multiplied by it, a band at a time.
     """
-    def scaled(x: torch.Tensor) -> torch.Tensor:
-        return x if noisy_scale == 1.0 else x * noisy_scale
+    def scaled(x: torch.Tensor) -> torch.Tensor:  # held at float32's largest, as kpcn.exposure.scale_array holds it
+        if noisy_scale == 1.0:
+            return x
+        big = torch.finfo(torch.float32).max
+        return (x * noisy_scale).clamp_(-big, big)
 
     h = denoised.shape[-2]
     reach = regression_reach(radius, stride)
