@@ -1,6 +1,6 @@
 """``python -m kpcn.bench exr``: reading and writing a render's EXR with OpenEXR's thread pool against one thread.
 
-Renders a frame once (every layer of the contract: 36 channels, ZIP), then, in a fresh spawned process per thread
+Renders a frame once (every layer of the contract: 32 channels, ZIP), then, in a fresh spawned process per thread
 count (the pool is process-global, :mod:`kpcn.io.exr_threads`), times :func:`kpcn.io.read_exr` and
 :func:`kpcn.io.write_exr` of it; the baseline is ``KPCN_EXR_THREADS=0``, OpenEXR's own single thread, in the same run.
 """
@@ -69,8 +69,9 @@ def bench_exr(argv: list[str]) -> int:
         for n in sorted(set(cfg.threads)):
             runs[f"KPCN_EXR_THREADS={n}"] = run_isolated(_measure, (path, str(n), cfg.repeats), cfg.timeout)
     base = runs.get("KPCN_EXR_THREADS=0", {})
-    print(f"EXR read and write: {cfg.scene} at {w}x{h}, {cfg.spp} spp, {size_mb:.0f} MB (ZIP); median of "
-          f"{cfg.repeats} calls each, each thread count in a fresh process; {os.cpu_count()} CPUs")
+    channels = next((r["channels"] for r in runs.values() if r.get("status") == "ok"), "?")
+    print(f"EXR read and write: {cfg.scene} at {w}x{h}, {cfg.spp} spp, {channels} channels, {size_mb:.0f} MB (ZIP); "
+          f"median of {cfg.repeats} calls each, each thread count in a fresh process; {os.cpu_count()} CPUs")
     print(f"{'threads':<22} {'pool':>4} {'read s':>8} {'write s':>8} {'read ×':>7} {'write ×':>8}")
     for name, r in runs.items():
         if r.get("status") != "ok":

@@ -1,7 +1,7 @@
 """OpenEXR's own threads for (de)compressing files: on by default, and safe across ``fork``.
 
 The OpenEXR library (de)compresses the blocks of a file on a global thread pool, which the Python package leaves
-at 0 threads (all on the calling thread): a 1920×1080 render of kpcn's 36 channels (ZIP) took 0.50 s to read
+at 0 threads (all on the calling thread): a 1920×1080 render of kpcn's 32 channels (ZIP) took 0.50 s to read
 single-threaded and 0.27 s with 2 threads (docs/measured.md, forty-second session; ``python -m kpcn.bench exr``).
 :func:`exr_threads` gives the pool ``KPCN_EXR_THREADS`` threads (default: the CPUs this process may use, at most
 8; ``0`` keeps OpenEXR's single thread), once per process, before kpcn's first read or write, unless the
@@ -83,16 +83,14 @@ def exr_threads() -> int:
         import OpenEXR
 
         n = _wanted()
-        if not hasattr(OpenEXR, "set_global_thread_count") or OpenEXR.global_thread_count() != 0:
-            n = 0  # no pool to fill, or the application's own count
+        if not hasattr(OpenEXR, "set_global_thread_count") or OpenEXR.global_thread_count() != 0 \
+                or not hasattr(os, "register_at_fork"):
+            n = 0  # no pool to fill, the application's own count, or no fork guard on this platform
         if n:
-            if not _state["registered"] and hasattr(os, "register_at_fork"):
+            if not _state["registered"]:
                 os.register_at_fork(before=_before_fork, after_in_parent=_after_fork_in_parent,
                                     after_in_child=_after_fork_in_child)
                 _state["registered"] = True
-            if not _state["registered"]:
-                n = 0  # no fork guard on this platform: keep OpenEXR's single thread
-            else:
-                _set(n)
+            _set(n)
         _state["count"] = n
         return n
