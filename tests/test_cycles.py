@@ -418,6 +418,46 @@ def test_render_cycles_without_bpy_says_how_to_install(monkeypatch, tmp_path, ca
     assert not (tmp_path / "x.exr").exists()
 
 
+def _child_dies_first(monkeypatch, how: str, times: int) -> list:
+    """``subprocess.run`` in :mod:`kpcn.render.cycles` replaced: its first ``times`` children run ``how`` (Python
+    code that kills or ends the process) instead of the render; later ones render. Returns the list of calls."""
+    real, calls = subprocess.run, []
+
+    def run(args, **kw):
+        calls.append(args)
+        if len(calls) <= times:
+            args = [sys.executable, "-c", how]
+        return real(args, **kw)
+
+    monkeypatch.setattr(rc.subprocess, "run", run)
+    monkeypatch.setattr(rc, "blender_available", lambda: True)
+    return calls
+
+
+@needs_bpy
+def test_a_child_killed_by_a_signal_is_rendered_again(monkeypatch, tmp_path, caplog):
+    # the one abort on record (forty-second session): Cycles' heap corrupted in a fresh child, signal 6
+    calls = _child_dies_first(monkeypatch, "import os, signal; os.kill(os.getpid(), signal.SIGABRT)", 1)
+    with caplog.at_level("WARNING", logger="kpcn.render"):
+        r = rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
+    assert len(calls) == 2 and r.resolution == (16, 16)
+    assert read_exr(tmp_path / "x.exr")["color"].shape == (16, 16, 3)
+    assert "died of signal 6" in caplog.text
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_a_child_killed_twice_or_failing_is_not_retried_further(monkeypatch, tmp_path):
+    calls = _child_dies_first(monkeypatch, "import os, signal; os.kill(os.getpid(), signal.SIGABRT)", 2)
+    with pytest.raises(RuntimeError, match="killed by signal 6, 2 times"):
+        rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
+    assert len(calls) == 2 and not (tmp_path / "x.exr").exists()
+    # an exit status is Blender's answer, not an accident of the process: no second try
+    calls = _child_dies_first(monkeypatch, "import sys; print('boom'); sys.exit(3)", 5)
+    with pytest.raises(RuntimeError, match=r"exit status 3\): boom"):
+        rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
+    assert len(calls) == 1
+
+
 @pytest.mark.parametrize("argv, text", [
     (["cycles", "--spp", "4", "--out", "x.exr"], "give a .blend file"),
     (["cycles", "a.blend", "--generated", "--out", "x.exr"], "either a .blend file or --generated"),

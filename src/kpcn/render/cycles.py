@@ -75,6 +75,9 @@ PASSES = (
     "cycles.use_pass_volume_direct", "cycles.use_pass_volume_indirect", "cycles.denoising_store_passes",
 )
 
+#: renders started again after the Blender child process was killed by a signal (an abort inside Cycles)
+SIGNAL_RETRIES = 1
+
 _RESULT_TAG = "KPCN_CYCLES_RESULT "
 _ERROR_TAG = "KPCN_CYCLES_ERROR "
 
@@ -184,11 +187,20 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
     src = str(Path(__file__).resolve().parents[2])  # the folder that holds the kpcn package
     env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     code = "import sys; from kpcn.render.cycles import _child; sys.exit(_child(sys.argv[1]))"
-    try:
-        proc = subprocess.run([sys.executable, "-c", code, json.dumps(job)], env=env, capture_output=True,
-                              text=True, errors="replace", timeout=timeout)
-    except subprocess.TimeoutExpired:
-        raise RuntimeError(f"Blender Cycles render of {job['scene']} stopped after {timeout} s") from None
+    deadline = None if timeout is None else time.monotonic() + timeout
+    for attempt in range(1 + SIGNAL_RETRIES):
+        try:
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.001)
+            proc = subprocess.run([sys.executable, "-c", code, json.dumps(job)], env=env, capture_output=True,
+                                  text=True, errors="replace", timeout=left)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"Blender Cycles render of {job['scene']} stopped after {timeout} s") from None
+        if proc.returncode >= 0 or attempt == SIGNAL_RETRIES:
+            break
+        # killed by a signal (Cycles has aborted on a corrupted heap once in a fresh child: a fault of that
+        # process, not of the scene): the same job once more, in a new process, up to the same deadline
+        log.warning("%s: the Blender child process died of signal %d; rendering again", job["scene"],
+                    -proc.returncode)
     lines = (proc.stdout or "").splitlines() + (proc.stderr or "").splitlines()
     result = next((ln[len(_RESULT_TAG):] for ln in lines if ln.startswith(_RESULT_TAG)), None)
     if proc.returncode == 0 and result is not None:
@@ -206,7 +218,9 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
             raise BlenderUnavailable(f"Blender's Python module bpy cannot be imported ({msg}): {BLENDER_HELP}")
         raise RuntimeError(msg)
     tail = " | ".join(ln.strip() for ln in lines[-5:] if ln.strip())
-    raise RuntimeError(f"Blender Cycles render of {job['scene']} failed (exit status {proc.returncode}): {tail}")
+    how = (f"exit status {proc.returncode}" if proc.returncode >= 0 else
+           f"killed by signal {-proc.returncode}, {1 + SIGNAL_RETRIES} times")
+    raise RuntimeError(f"Blender Cycles render of {job['scene']} failed ({how}): {tail}")
 
 
 # ----------------------------------------------------------------------------- the child process (imports bpy)
