@@ -115,6 +115,15 @@ def test_ensure_dataset_renders_a_missing_one_and_refuses_other_settings(mi, tmp
     assert calls == []
 
 
+def test_a_fresh_data_set_renders_without_openexr_errors(mi, tmp_path, capfd):
+    # the reuse checks of frames not yet rendered had OpenEXR print "Unable to open file for read" (at file
+    # descriptor level, past Python's sys.stderr) twice for each frame of a new data set
+    render_dataset(tmp_path / "d", 1, **SMALL)
+    assert len(frame_files(tmp_path / "d")) == 2
+    err = capfd.readouterr().err
+    assert "EXR_ERR" not in err and "Unable to open" not in err, err
+
+
 def test_legacy_manifest_readable_only_when_its_files_exist(mi, tmp_path):
     root = tmp_path / "old"
     render_dataset(root, 1, **SMALL)

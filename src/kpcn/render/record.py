@@ -179,7 +179,9 @@ def _differences(have: dict, size, want: dict) -> dict:
 
 def _record_differences(path: Path, want: dict) -> tuple[dict, dict] | None:
     """The record of the frame at ``path`` and how it differs from ``want`` (:func:`_differences`); None when the
-    file is unreadable or has no record."""
+    file is missing, unreadable or has no record."""
+    if not Path(path).is_file():  # OpenEXR would print its own error for a missing file before raising
+        return None
     try:
         have, size = read_record(path)
     except Exception:
