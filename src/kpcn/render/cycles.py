@@ -168,7 +168,9 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         BlenderUnavailable: ``bpy`` is not installed (``pip install 'kpcn[blender]'``).
         SceneError: the ``.blend`` cannot be opened or rendered (no camera, ...).
         ValueError: a bad argument.
-        RuntimeError: Blender failed otherwise (the message ends with its last output).
+        RuntimeError: Blender failed otherwise (the message ends with its last output). A child process killed by
+            a signal (an abort inside Cycles) is started again :data:`SIGNAL_RETRIES` times first, within
+            ``timeout``; an exit status is Blender's answer and is not retried.
     """
     blend, out, resolution = _check(blend_path_or_none, out_path, spp, seed, resolution)
     if adaptive_threshold is not None and not 0 < float(adaptive_threshold) < 1:
