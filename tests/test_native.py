@@ -17,9 +17,11 @@ from kpcn.models.kernel_heads import _softmax_weights
 from kpcn.ops import native
 from kpcn.ops.kernel_apply import kernel_apply_padded
 from kpcn.models.kernel_heads import GuidedHead
+from kpcn.models.guided import upsample2_guided
 from kpcn.models.layers import conv1x1, pool2, transform_input, upsample2
 from kpcn.features import branch_features, depth_scale_of, frame_to_tensors
-from kpcn.ops.fused import (MAX_NATIVE_SCALE, branch_features_native, feed_native, residual_regression_native,
+from kpcn.ops.fused import (MAX_NATIVE_SCALE, branch_features_native, feed_native, guided_blend_native,
+                            residual_regression_native,
                             softmax_apply_native, upsample_guide_native)
 from kpcn.ops.regression import residual_regression
 
@@ -137,6 +139,34 @@ def test_upsample_guide_is_the_guided_heads_band(guide_dtype, rows, width):
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), float((got - want).abs().max())
     with pytest.raises(ValueError, match="do not fit"):
         upsample_guide_native(low, guide[..., 1:, :], head.weight[:, cc:, 0, 0].detach())
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("rows,width,r0,n", [(2, 2, 0, 2), (8, 38, 2, 4), (12, 64, 0, 12), (20, 30, 3, 13)])
+def test_guided_blend_is_the_row_streams_blend(rows, width, r0, n):
+    """A band's blend with the normal-guided upsampling and the high-band gain, ``lerp(U D f, f, β) + α U(c - D f)``,
+    as :func:`upsample2_guided` and :func:`pool2` make it, on slices (the streams pass views of larger maps); a
+    step in the guide keeps its edge (the weights matter: the bilinear blend differs there)."""
+    g = torch.Generator().manual_seed(rows * 31 + width)
+    c = 6  # two signals side by side
+    f = torch.rand(1, c + 1, rows, width + 3, generator=g)[:, 1:, :, 2:2 + width]
+    coarse = torch.rand(1, c, rows // 2, width // 2, generator=g)
+    normal = torch.randn(1, 3, rows + 2, width, generator=g).clamp(-1, 1)[:, :, 1:1 + rows]
+    normal[..., width // 2:] = -normal[..., width // 2:]  # an edge
+    normal_half = pool2(normal.contiguous())
+    alpha = torch.rand(1, 1, rows, width, generator=g)
+    beta = 2 * torch.rand(1, 1, rows, width, generator=g)
+    df = pool2(f)
+    both = upsample2_guided(torch.cat([df, coarse - df], 1), normal, normal_half, 0.5)
+    want = (torch.lerp(both[:, :c], f, beta) + alpha * both[:, c:])[..., r0:r0 + n, :]
+    got = guided_blend_native(f, coarse, normal, normal_half, 0.5, alpha, beta, r0, n)
+    assert got is not None and got.shape == want.shape == (1, c, n, width)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), float((got - want).abs().max())
+    bilinear = (torch.lerp(upsample2(df), f, beta) + alpha * upsample2(coarse - df))[..., r0:r0 + n, :]
+    if rows >= 4 and width >= 4:  # (a 1x1 coarse map has one tap: nothing to weigh)
+        assert not torch.allclose(got, bilinear, rtol=1e-3, atol=1e-4)
+    with pytest.raises(ValueError, match="do not fit"):
+        guided_blend_native(f, coarse[..., 1:, :], normal, normal_half, 0.5, alpha, beta, r0, n)
 
 
 @pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from ..ops.fused import feed_native, softmax_apply_native, upsample_guide_native
+from ..ops.fused import feed_native, guided_blend_native, softmax_apply_native, upsample_guide_native
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
 from .guided import apply_guided, guide_pyramid, guided_weights
@@ -310,8 +310,16 @@ class RowStream:
                            full[..., e0:e1, :] for key, full in self._full.items()})
         # z is this band's own: its logits made weights in place on the PyTorch path
         filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
-        # the blend's upsampling guided by the normal (edge_upsample), as in the whole frame: the tap weights once a
-        # band (and once for every stream that shares the cache)
+        if self._normal is not None and alpha is not None and gain is not None:  # the blend in one native pass
+            coarse = torch.cat([clamped_rows(self._coarse[key], e0 // 2, e1 // 2) for key in self._full], dim=1)
+            blended = guided_blend_native(filtered, coarse, self._normal[..., e0:e1, :],
+                                          self._normal_half[..., e0 // 2:e1 // 2, :], float(cfg.edge_upsample),
+                                          alpha, gain, i0, n)
+            if blended is not None:
+                out.update(_unstacked(self._full, blended))
+                return out
+        # the blend's upsampling guided by the normal (edge_upsample), as in the whole frame (and where the native
+        # library is missing): the tap weights once a band (and once for every stream that shares the cache)
         wts = None
         if self._normal is not None and alpha is not None:
             cache, key = self.guide_weights_cache, (e0, e1, self.padded_size, float(cfg.edge_upsample))

@@ -5,7 +5,8 @@ Each returns None (:func:`feed_native`: False) where the library or its inputs d
 to float rounding. Each splits its rows between ``torch.get_num_threads()`` threads (torch's own OpenMP pool).
 
 :func:`softmax_apply_native`: bounded-softmax kernels applied; :func:`upsample_guide_native`: the guided head's
-full-resolution output; :func:`feed_native`: the guide and the pooled features of a band of feature rows;
+full-resolution output; :func:`guided_blend_native`: the full-resolution level's coarse-to-fine blend with the
+normal-guided upsampling; :func:`feed_native`: the guide and the pooled features of a band of feature rows;
 :func:`residual_regression_native`: the detail stage's regression with one fit per 2×2 block;
 :func:`branch_features_native`: the diffuse/specular features of a band.
 """
@@ -18,8 +19,8 @@ import torch
 from ..constants import BRANCH_LAYERS
 from . import native
 
-__all__ = ["softmax_apply_native", "upsample_guide_native", "feed_native", "residual_regression_native",
-           "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL", "MAX_FEED_CHANNELS"]
+__all__ = ["softmax_apply_native", "upsample_guide_native", "guided_blend_native", "feed_native",
+           "residual_regression_native", "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL", "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0
@@ -111,6 +112,46 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     lib.upsample_guide_rows(low.data_ptr(), low.stride(1), low.stride(2), lr, lw, guide.data_ptr(), guide.stride(1),
                             guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), o, out.data_ptr(),
                             out.stride(1), out.stride(2), scratch.data_ptr(), threads)
+    return out
+
+
+def guided_blend_native(f: torch.Tensor, coarse: torch.Tensor, guide_fine: torch.Tensor, guide_coarse: torch.Tensor,
+                        sigma: float, alpha: torch.Tensor, beta: torch.Tensor, r0: int, n: int) -> torch.Tensor | None:
+    """Rows ``[r0, r0 + n)`` of a band's blended full-resolution level, ``lerp(U D f, f, β) + α · U(coarse - D f)``,
+    ``D`` the 2×2 average and ``U`` :func:`~kpcn.models.guided.upsample2_guided` by the guide pair (each of the band's
+    maps replicate-padded at its edges, as :func:`~kpcn.models.guided.apply_guided` pads them): what
+    :meth:`kpcn.models.unet_rows.RowStream.rows` does with ``edge_upsample`` and ``band_gain``, in one loop.
+
+    Args:
+        f: ``(1, C, R, W)`` float32, the level's filtered colour over the band's rows (``R``, ``W`` even).
+        coarse: ``(1, C, R / 2, W / 2)`` float32, the coarser levels' result over them.
+        guide_fine: ``(1, G, R, W)`` float32; guide_coarse: ``(1, G, R / 2, W / 2)`` float32.
+        sigma: > 0. alpha, beta: ``(1, 1, R, W)`` float32, the blend weight and the high band's gain.
+
+    Returns:
+        ``(1, C, n, W)`` float32 contiguous, or None where the native path does not apply.
+    """
+    if not (_plain(f, coarse, guide_fine, guide_coarse, alpha, beta, rows=True) and sigma > 0) or f.shape[0] != 1:
+        return None
+    _, c, rows, width = f.shape
+    g = guide_fine.shape[1]
+    if rows % 2 or width % 2 or coarse.shape != (1, c, rows // 2, width // 2) \
+            or guide_fine.shape[-2:] != (rows, width) or guide_coarse.shape != (1, g, rows // 2, width // 2) \
+            or alpha.shape != (1, 1, rows, width) or beta.shape != (1, 1, rows, width) or not 0 <= r0 <= r0 + n <= rows:
+        raise ValueError(f"guided_blend_native: f {tuple(f.shape)} (1, C, R, W), coarse {tuple(coarse.shape)}, guides "
+                         f"{tuple(guide_fine.shape)} and {tuple(guide_coarse.shape)}, alpha {tuple(alpha.shape)}, "
+                         f"beta {tuple(beta.shape)} and rows [{r0}, {r0 + n}) do not fit")
+    lib = native.library()
+    if lib is None:
+        return None
+    out = torch.empty(1, c, n, width, dtype=torch.float32)
+    scratch = torch.empty(2 * c * (rows // 2) * (width // 2), dtype=torch.float32)
+    lib.guided_blend_rows(f.data_ptr(), f.stride(1), f.stride(2), rows, width, c,
+                          coarse.data_ptr(), coarse.stride(1), coarse.stride(2),
+                          guide_fine.data_ptr(), guide_fine.stride(1), guide_fine.stride(2),
+                          guide_coarse.data_ptr(), guide_coarse.stride(1), guide_coarse.stride(2), g, float(sigma),
+                          alpha.data_ptr(), alpha.stride(2), beta.data_ptr(), beta.stride(2), int(r0), int(n),
+                          out.data_ptr(), out.stride(1), out.stride(2), scratch.data_ptr(), _threads(n))
     return out
 
 

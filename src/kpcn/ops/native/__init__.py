@@ -31,7 +31,8 @@ import torch  # noqa: F401  (loaded first: its libgomp.so.1 is the one the libra
 __all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "HEADERS", "FLAGS"]
 
 #: the C sources compiled into the one library
-SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c", "branch_features.c")
+SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c", "branch_features.c",
+           "guided_blend.c")
 #: headers they include (part of the cache key)
 HEADERS = ("kpcn_math.h",)
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
@@ -116,6 +117,11 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     lib.upsample_guide_rows.argtypes = [ptr, i64, i64, i32, i32, ptr, i64, i64, i32, i32, ptr, i32, ptr, i64, i64,
                                         ptr, i32]
     lib.upsample_guide_rows.restype = None
+    # f, its strides, rows, width, channels; coarse + strides; fine guide + strides; coarse guide + strides; guide
+    # channels, sigma; alpha, its row stride; beta, its row stride; r0, n; out + strides; scratch; threads
+    lib.guided_blend_rows.argtypes = [ptr, i64, i64, i32, i32, i32, ptr, i64, i64, ptr, i64, i64, ptr, i64, i64,
+                                      i32, f32, ptr, i64, ptr, i64, i32, i32, ptr, i64, i64, ptr, i32]
+    lib.guided_blend_rows.restype = None
     lib.feed_rows.argtypes = [ptr, i64, i64, i32, i32, i32, i32, ptr, ptr, i32, ptr, i64, i64, i32, ptr, i64, i64, i64,
                               i32, i32]
     lib.feed_rows.restype = None
