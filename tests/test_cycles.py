@@ -418,10 +418,13 @@ def test_render_cycles_without_bpy_says_how_to_install(monkeypatch, tmp_path, ca
     assert not (tmp_path / "x.exr").exists()
 
 
+_REAL_RUN = subprocess.run
+
+
 def _child_dies_first(monkeypatch, how: str, times: int) -> list:
     """``subprocess.run`` in :mod:`kpcn.render.cycles` replaced: its first ``times`` children run ``how`` (Python
     code that kills or ends the process) instead of the render; later ones render. Returns the list of calls."""
-    real, calls = subprocess.run, []
+    real, calls = _REAL_RUN, []
 
     def run(args, **kw):
         calls.append(args)
@@ -446,7 +449,7 @@ def test_a_child_killed_by_a_signal_is_rendered_again(monkeypatch, tmp_path, cap
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-def test_a_child_killed_twice_or_failing_is_not_retried_further(monkeypatch, tmp_path):
+def test_a_child_crashing_twice_killed_or_failing_is_not_retried_further(monkeypatch, tmp_path):
     calls = _child_dies_first(monkeypatch, "import os, signal; os.kill(os.getpid(), signal.SIGABRT)", 2)
     with pytest.raises(RuntimeError, match="killed by signal 6, 2 times"):
         rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
@@ -454,6 +457,11 @@ def test_a_child_killed_twice_or_failing_is_not_retried_further(monkeypatch, tmp
     # an exit status is Blender's answer, not an accident of the process: no second try
     calls = _child_dies_first(monkeypatch, "import sys; print('boom'); sys.exit(3)", 5)
     with pytest.raises(RuntimeError, match=r"exit status 3\): boom"):
+        rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
+    assert len(calls) == 1
+    # nor a kill from outside (the out-of-memory killer's SIGKILL would come again)
+    calls = _child_dies_first(monkeypatch, "import os, signal; os.kill(os.getpid(), signal.SIGKILL)", 5)
+    with pytest.raises(RuntimeError, match=r"killed by signal 9\)"):
         rc.render_cycles(None, tmp_path / "x.exr", spp=2, seed=0, resolution=(16, 16))
     assert len(calls) == 1
 

@@ -20,7 +20,8 @@ from ..constants import BRANCH_LAYERS
 from . import native
 
 __all__ = ["softmax_apply_native", "upsample_guide_native", "guided_blend_native", "feed_native",
-           "residual_regression_native", "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL", "MAX_FEED_CHANNELS"]
+           "residual_regression_native", "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
+           "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0

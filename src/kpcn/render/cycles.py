@@ -48,6 +48,7 @@ import json
 import logging
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -75,8 +76,11 @@ PASSES = (
     "cycles.use_pass_volume_direct", "cycles.use_pass_volume_indirect", "cycles.denoising_store_passes",
 )
 
-#: renders started again after the Blender child process was killed by a signal (an abort inside Cycles)
+#: renders started again after the Blender child process crashed (killed by one of :data:`CRASH_SIGNALS`)
 SIGNAL_RETRIES = 1
+#: the signals of a crash inside the child (an abort on a corrupted heap, a bad memory access): worth a second try,
+#: unlike a kill from outside (the out-of-memory killer's SIGKILL would only come again)
+CRASH_SIGNALS = frozenset(int(getattr(signal, n)) for n in ("SIGABRT", "SIGSEGV", "SIGBUS") if hasattr(signal, n))
 
 _RESULT_TAG = "KPCN_CYCLES_RESULT "
 _ERROR_TAG = "KPCN_CYCLES_ERROR "
@@ -168,9 +172,9 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         BlenderUnavailable: ``bpy`` is not installed (``pip install 'kpcn[blender]'``).
         SceneError: the ``.blend`` cannot be opened or rendered (no camera, ...).
         ValueError: a bad argument.
-        RuntimeError: Blender failed otherwise (the message ends with its last output). A child process killed by
-            a signal (an abort inside Cycles) is started again :data:`SIGNAL_RETRIES` times first, within
-            ``timeout``; an exit status is Blender's answer and is not retried.
+        RuntimeError: Blender failed otherwise (the message ends with its last output). A child process that
+            crashed (:data:`CRASH_SIGNALS`: an abort inside Cycles) is started again :data:`SIGNAL_RETRIES` times
+            first, within ``timeout``; an exit status, or a kill from outside, is not retried.
     """
     blend, out, resolution = _check(blend_path_or_none, out_path, spp, seed, resolution)
     if adaptive_threshold is not None and not 0 < float(adaptive_threshold) < 1:
@@ -197,7 +201,7 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
                                   text=True, errors="replace", timeout=left)
         except subprocess.TimeoutExpired:
             raise RuntimeError(f"Blender Cycles render of {job['scene']} stopped after {timeout} s") from None
-        if proc.returncode >= 0 or attempt == SIGNAL_RETRIES:
+        if -proc.returncode not in CRASH_SIGNALS or attempt == SIGNAL_RETRIES:
             break
         # killed by a signal (Cycles has aborted on a corrupted heap once in a fresh child: a fault of that
         # process, not of the scene): the same job once more, in a new process, up to the same deadline
@@ -221,7 +225,8 @@ def render_cycles(blend_path_or_none, out_path, spp: int, seed: int = 0, resolut
         raise RuntimeError(msg)
     tail = " | ".join(ln.strip() for ln in lines[-5:] if ln.strip())
     how = (f"exit status {proc.returncode}" if proc.returncode >= 0 else
-           f"killed by signal {-proc.returncode}, {1 + SIGNAL_RETRIES} times")
+           f"killed by signal {-proc.returncode}" + (f", {1 + SIGNAL_RETRIES} times" if -proc.returncode in CRASH_SIGNALS
+                                                      else ""))
     raise RuntimeError(f"Blender Cycles render of {job['scene']} failed ({how}): {tail}")
 
 
