@@ -146,13 +146,14 @@ def guided_blend_native(f: torch.Tensor, coarse: torch.Tensor, guide_fine: torch
     if lib is None:
         return None
     out = torch.empty(1, c, n, width, dtype=torch.float32)
-    scratch = torch.empty(2 * c * (rows // 2) * (width // 2), dtype=torch.float32)
+    threads = _threads(n)
+    scratch = torch.empty(2 * c * (rows // 2) * (width // 2) + threads * 4 * width, dtype=torch.float32)
     lib.guided_blend_rows(f.data_ptr(), f.stride(1), f.stride(2), rows, width, c,
                           coarse.data_ptr(), coarse.stride(1), coarse.stride(2),
                           guide_fine.data_ptr(), guide_fine.stride(1), guide_fine.stride(2),
                           guide_coarse.data_ptr(), guide_coarse.stride(1), guide_coarse.stride(2), g, float(sigma),
                           alpha.data_ptr(), alpha.stride(2), beta.data_ptr(), beta.stride(2), int(r0), int(n),
-                          out.data_ptr(), out.stride(1), out.stride(2), scratch.data_ptr(), _threads(n))
+                          out.data_ptr(), out.stride(1), out.stride(2), scratch.data_ptr(), threads)
     return out
 
 
