@@ -125,7 +125,8 @@ class RowStream:
         self._ctx, self._next = None, 0  # the guide's rows in waiting (guide_kernel > 1; _feed_guide)
         self._low, self._low_bias = None, None
         self._fr_low = None  # fullres_channels: the first stage's half-resolution part (run())
-        self._coarse: dict[str, torch.Tensor] = {}
+        #: the coarser kernel levels combined at half resolution, every signal side by side (:func:`_stacked` order)
+        self._coarse: torch.Tensor | None = None
         #: the albedo at full resolution (a branch with albedo kernels), and with albedo_clamp its bound as a 4th channel
         clamp = bool(branch.albedo_kernel and cfg.albedo_clamp)
         self._albedo = torch.empty(1, 3 + clamp, hp, wp, **self._kw) if branch.albedo_kernel else None
@@ -254,8 +255,7 @@ class RowStream:
                 guides = self._normal_pyramid(cfg.kernel_scales - 1)
                 self._normal_half = guides[0]
             # gains: None each without band_gain
-            self._coarse = _unstacked(self._half, combine_levels(filtered, alphas, gains, guides,
-                                                                 float(cfg.edge_upsample)))
+            self._coarse = combine_levels(filtered, alphas, gains, guides, float(cfg.edge_upsample))
         self._half = {}
 
     def _normal_pyramid(self, levels: int) -> tuple[torch.Tensor, ...]:
@@ -310,8 +310,8 @@ class RowStream:
                            full[..., e0:e1, :] for key, full in self._full.items()})
         # z is this band's own: its logits made weights in place on the PyTorch path
         filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
+        coarse = clamped_rows(self._coarse, e0 // 2, e1 // 2) if alpha is not None else None
         if self._normal is not None and alpha is not None and gain is not None:  # the blend in one native pass
-            coarse = torch.cat([clamped_rows(self._coarse[key], e0 // 2, e1 // 2) for key in self._full], dim=1)
             blended = guided_blend_native(filtered, coarse, self._normal[..., e0:e1, :],
                                           self._normal_half[..., e0 // 2:e1 // 2, :], float(cfg.edge_upsample),
                                           alpha, gain, i0, n)
@@ -330,12 +330,13 @@ class RowStream:
                                      float(cfg.edge_upsample))
                 if cache is not None:
                     cache.update(key=key, weights=wts)
+        coarse_of = _unstacked(self._full, coarse) if coarse is not None else {}
         for key, f in _unstacked(self._full, filtered).items():
             if alpha is None:
                 out[key] = f
                 continue
             df = pool2(f)
-            corr = clamped_rows(self._coarse[key], e0 // 2, e1 // 2) - df
+            corr = coarse_of[key] - df
             if wts is not None:
                 both = apply_guided(torch.cat([df, corr], 1), wts)[..., i0:i0 + n, :]
                 u_df, up = both[:, :3], both[:, 3:]
