@@ -21,8 +21,8 @@ from kpcn.models.guided import upsample2_guided
 from kpcn.models.layers import conv1x1, pool2, transform_input, upsample2
 from kpcn.features import branch_features, depth_scale_of, frame_to_tensors
 from kpcn.ops.fused import (MAX_NATIVE_SCALE, branch_features_native, feed_native, guided_blend_native,
-                            residual_regression_native,
-                            softmax_apply_native, upsample_guide_native)
+                            guided_softmax_native, residual_regression_native, softmax_apply_native,
+                            upsample_guide_native)
 from kpcn.ops.regression import residual_regression
 
 HAVE_CC = native._compiler() is not None
@@ -139,6 +139,36 @@ def test_upsample_guide_is_the_guided_heads_band(guide_dtype, rows, width):
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), float((got - want).abs().max())
     with pytest.raises(ValueError, match="do not fit"):
         upsample_guide_native(low, guide[..., 1:, :], head.weight[:, cc:, 0, 0].detach())
+
+
+@pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
+@pytest.mark.parametrize("guide_dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("k,rows,width,channels", [(3, 3, 1, 3), (5, 5, 37, 6), (5, 10, 70, 3), (7, 4, 33, 9)])
+def test_guided_softmax_is_the_band_made_then_applied(guide_dtype, k, rows, width, channels):
+    """The guided head's kernels made and applied at once: the PyTorch path's band (upsampled, the guide's product
+    added) made softmax kernels and applied to the padded colour, reading only the head's first k² channels (the
+    others, the blend's weights, set far off here, must not leak in)."""
+    g = torch.Generator().manual_seed(k * 100 + rows * 7 + width)
+    kk, cg, cc = k * k, 5, 6
+    o = kk + 4
+    head = GuidedHead(cc + cg, o, 1)
+    with torch.no_grad():
+        head.weight.normal_(generator=g)
+        head.weight[kk:] *= 100.0
+    big = torch.randn(1, o + 2, rows + 4, width, generator=g) * 2.0
+    low = big[:, 1:1 + o, 1:rows + 3]  # a slice, as the stream's clamped rows are
+    guide = torch.randn(1, cg, 2 * rows + 9, 2 * width, generator=g).to(guide_dtype)[..., 3:3 + 2 * rows, :]
+    padded = torch.rand(1, channels, 2 * rows + k - 1, 2 * width + k - 1, generator=g)
+    with torch.no_grad():
+        z = head.add_guide_part_(upsample2(low, context_rows=True), guide)
+        want = _pytorch_path(z[:, :kk], padded, k, 16.0)
+        got = guided_softmax_native(low, guide, head.weight[:, cc:, 0, 0], padded, k, 16.0)
+    assert got is not None and got.shape == want.shape == (1, channels, 2 * rows, 2 * width)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), float((got - want).abs().max())
+    with pytest.raises(ValueError, match="do not fit"):
+        guided_softmax_native(low, guide, head.weight[:, cc:, 0, 0].detach(), padded[..., 1:, :], k, 16.0)
+    with pytest.raises(ValueError, match="do not fit"):  # fewer head channels than taps
+        guided_softmax_native(low[:, :kk - 1], guide, head.weight[:kk - 1, cc:, 0, 0].detach(), padded, k, 16.0)
 
 
 @pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine: the PyTorch paths run instead")
@@ -292,6 +322,13 @@ def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     assert upsample_guide_native(low.double(), guide, wg) is None
     assert upsample_guide_native(low.requires_grad_(), guide, wg) is None
     assert upsample_guide_native(torch.zeros(2, 4, 5, 8), torch.zeros(2, 2, 6, 16), wg) is None
+    pad9 = torch.zeros(1, 3, 8, 18)
+    assert guided_softmax_native(torch.zeros(1, 9, 5, 8), guide, torch.zeros(9, 2), pad9, k, 16.0) is not None \
+        or not HAVE_CC
+    assert guided_softmax_native(torch.zeros(1, 9, 5, 8), guide, torch.zeros(9, 2), pad9, k, MAX_NATIVE_SCALE * 2) \
+        is None
+    assert guided_softmax_native(torch.zeros(1, 9, 5, 8), guide, torch.zeros(9, 2), pad9, 4, 16.0) is None  # even k
+    assert guided_softmax_native(torch.zeros(1, 9, 5, 8), guide, torch.zeros(9, 2), pad9.double(), k, 16.0) is None
     x, pooled = torch.zeros(1, 4, 6, 8), torch.zeros(1, 4, 3, 4)
     assert not feed_native(x, "logvar", None, None, None, pooled)  # not a transform it computes
     assert not feed_native(x.double(), "log", None, None, None, pooled)
@@ -302,6 +339,7 @@ def test_softmax_apply_refuses_what_it_does_not_do(monkeypatch):
     assert not feed_native(x, "log", None, None, None, pooled)
     assert softmax_apply_native(torch.zeros(1, 9, 6, 8), padded, k, 16.0) is None
     assert upsample_guide_native(torch.zeros(1, 4, 5, 8), guide, wg) is None
+    assert guided_softmax_native(torch.zeros(1, 9, 5, 8), guide, torch.zeros(9, 2), pad9, k, 16.0) is None
 
 
 def _default_like_model():
@@ -332,13 +370,14 @@ def test_a_real_frame_denoises_the_same_without_the_library(render, fresh_native
             return out
         return call
 
-    for name in ("softmax_apply_native", "upsample_guide_native", "feed_native"):
+    names = {"softmax_apply_native", "upsample_guide_native", "guided_softmax_native", "feed_native"}
+    for name in names:
         monkeypatch.setattr(unet_rows, name, counted(getattr(unet_rows, name)))
     def run():
         return inference.denoise_result(frame, model, tile=0, device="cpu", skip=False, precision="float32")
     with_lib = run()
     assert with_lib.stats.row_bands > 0
-    assert {name for name, _ in calls} == {"softmax_apply_native", "upsample_guide_native", "feed_native"}
+    assert {name for name, _ in calls} == names
     if HAVE_CC:
         assert all(ok for _, ok in calls), "the row bands must take the native path where the library builds"
     monkeypatch.setenv("CC", str(fresh_native / "no-such-compiler"))

@@ -26,7 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from ..ops.kernel_apply import kernel_apply_padded
-from ..ops.fused import feed_native, guided_blend_native, softmax_apply_native, upsample_guide_native
+from ..ops.fused import (feed_native, guided_blend_native, guided_softmax_native, softmax_apply_native,
+                         upsample_guide_native)
 from .kernel_heads import (_softmax_weights, albedo_bound, blend_weights, combine_levels, gate_of, gated_albedo,
                            radiance_mixed)
 from .guided import apply_guided, guide_pyramid, guided_weights
@@ -293,23 +294,32 @@ class RowStream:
         if self._low_bias is not None:
             low = low.float().add_(self._low_bias.view(1, -1, 1, 1))
         guide, head = self._guide[..., e0:e1, :], self.branch.head
-        z = upsample_guide_native(low, guide, head.weight[:, head.in_channels - guide.shape[1]:, 0, 0])
-        if z is None:  # the PyTorch path: the same, in passes
-            z = head.add_guide_part_(upsample2(low, context_rows=True), guide)
-        if self._fr_low is not None:
-            z = z.add_(self._fullres_rows(e0, e1))
+        w_guide = head.weight[:, head.in_channels - guide.shape[1]:, 0, 0]
         _, nb, na, nm = self.branch.head_layout
-        alpha, gain = blend_weights(z[:, kk:kk + nb]) if cfg.kernel_scales > 1 else (None, None)
-        mix = torch.sigmoid(z[:, kk + nb + na:]) if nm else None
-        i0, n = r0 - e0, r1 - r0
-        out = {}
-        if self._albedo is not None:  # before the logits' softmax (in place in z)
-            out[self.ALBEDO] = self._albedo_rows(z[:, kk + nb:kk + nb + na], e0, e1)[..., i0:i0 + n, :]
         # every signal's rows, side by side: filtered with the same kernels at once
         colour = _stacked({key: F.pad(clamped_rows(full, e0 - r, e1 + r), (r, r, 0, 0), mode="replicate") if r else
                            full[..., e0:e1, :] for key, full in self._full.items()})
-        # z is this band's own: its logits made weights in place on the PyTorch path
-        filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
+        # the kernels made and applied in one native pass where nothing else adds to their logits; then only the
+        # head's other channels (the blend's weights, the albedo's logits) are made as a band
+        filtered = guided_softmax_native(low, guide, w_guide, colour, cfg.kernel_size, cfg.logit_scale) \
+            if self._fr_low is None and not nm else None
+        if filtered is not None:
+            tail = upsample_guide_native(low[:, kk:], guide, w_guide[kk:]) if low.shape[1] > kk else None
+        else:
+            z = upsample_guide_native(low, guide, w_guide)
+            if z is None:  # the PyTorch path: the same, in passes
+                z = head.add_guide_part_(upsample2(low, context_rows=True), guide)
+            if self._fr_low is not None:
+                z = z.add_(self._fullres_rows(e0, e1))
+            tail = z[:, kk:]
+        alpha, gain = blend_weights(tail[:, :nb]) if cfg.kernel_scales > 1 else (None, None)
+        mix = torch.sigmoid(tail[:, nb + na:]) if nm else None
+        i0, n = r0 - e0, r1 - r0
+        out = {}
+        if self._albedo is not None:  # before the logits' softmax (in place in z)
+            out[self.ALBEDO] = self._albedo_rows(tail[:, nb:nb + na], e0, e1)[..., i0:i0 + n, :]
+        if filtered is None:  # z is this band's own: its logits made weights in place on the PyTorch path
+            filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
         coarse = clamped_rows(self._coarse, e0 // 2, e1 // 2) if alpha is not None else None
         if self._normal is not None and alpha is not None and gain is not None:  # the blend in one native pass
             blended = guided_blend_native(filtered, coarse, self._normal[..., e0:e1, :],

@@ -19,9 +19,9 @@ import torch
 from ..constants import BRANCH_LAYERS
 from . import native
 
-__all__ = ["softmax_apply_native", "upsample_guide_native", "guided_blend_native", "feed_native",
-           "residual_regression_native", "branch_features_native", "MAX_NATIVE_SCALE", "MAX_NATIVE_KERNEL",
-           "MAX_FEED_CHANNELS"]
+__all__ = ["softmax_apply_native", "upsample_guide_native", "guided_softmax_native", "guided_blend_native",
+           "feed_native", "residual_regression_native", "branch_features_native", "MAX_NATIVE_SCALE",
+           "MAX_NATIVE_KERNEL", "MAX_FEED_CHANNELS"]
 
 #: above this logit bound the PyTorch path subtracts the maximum before exp (2^(s log2 e) would overflow float32)
 MAX_NATIVE_SCALE = 80.0
@@ -113,6 +113,49 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     lib.upsample_guide_rows(low.data_ptr(), low.stride(1), low.stride(2), lr, lw, guide.data_ptr(), guide.stride(1),
                             guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), o, out.data_ptr(),
                             out.stride(1), out.stride(2), scratch.data_ptr(), threads)
+    return out
+
+
+def guided_softmax_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.Tensor, padded: torch.Tensor,
+                          kernel_size: int, logit_scale: float) -> torch.Tensor | None:
+    """The guided head's kernels for a band, made and applied at once: :func:`softmax_apply_native` of the first
+    ``k²`` channels of :func:`upsample_guide_native`'s output, without writing those logits to memory.
+
+    Args:
+        low: ``(1, O, n + 2, w)`` float32, ``O >= k²``, the head's half-resolution product with its bias (only its
+            first ``k²`` channels are read), over the band's half-resolution rows and one row of context each side.
+        guide: ``(1, G, 2n, 2w)`` float32 or bfloat16, the band's guide rows (each row contiguous).
+        weight: ``(O, G)`` float32, the head's guide weights (its first ``k²`` rows are read).
+        padded: ``(1, C, 2n + k - 1, 2w + k - 1)`` float32, the colour the kernels apply to, padded by ``k // 2``.
+
+    Returns:
+        ``(1, C, 2n, 2w)`` float32, or None where the native path does not apply.
+    """
+    k, s = int(kernel_size), float(logit_scale)
+    kk = k * k
+    if not (_plain(low, padded, rows=True) and _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)) or \
+            (torch.is_grad_enabled() and weight.requires_grad) or low.shape[0] != 1 or guide.shape[0] != 1 or \
+            padded.shape[0] != 1 or not (0 < s <= MAX_NATIVE_SCALE and k % 2 == 1 and k <= MAX_NATIVE_KERNEL):
+        return None
+    _, o, lr, lw = low.shape
+    g, rows, width = guide.shape[1], 2 * lr - 4, 2 * lw
+    if lr < 3 or o < kk or guide.shape[-2:] != (rows, width) or weight.shape[0] != o or weight.shape[1] != g or \
+            padded.shape[-2:] != (rows + k - 1, width + k - 1):
+        raise ValueError(f"guided_softmax_native: low {tuple(low.shape)} (1, O >= {kk}, n + 2, w), guide "
+                         f"{tuple(guide.shape)}, weight {tuple(weight.shape)} and padded {tuple(padded.shape)} do not "
+                         f"fit: want guide (1, G, 2n, 2w), weight (O, G), padded (1, C, 2n + {k - 1}, 2w + {k - 1})")
+    lib = native.library()
+    if lib is None:
+        return None
+    c = padded.shape[1]
+    out = torch.empty(1, c, rows, width, dtype=torch.float32)
+    wg = weight[:kk].detach().to(torch.float32).contiguous()
+    threads = _threads(rows)
+    scratch = torch.empty(threads * (kk + g + 1) * width, dtype=torch.float32)
+    lib.guided_softmax_rows(low.data_ptr(), low.stride(1), low.stride(2), lr, lw, guide.data_ptr(), guide.stride(1),
+                            guide.stride(2), g, int(guide.dtype == torch.bfloat16), wg.data_ptr(), k, s,
+                            padded.data_ptr(), padded.stride(1), padded.stride(2), c, out.data_ptr(), out.stride(1),
+                            out.stride(2), scratch.data_ptr(), threads)
     return out
 
 

@@ -32,9 +32,9 @@ __all__ = ["library", "enabled", "status", "reset", "cache_dir", "SOURCES", "HEA
 
 #: the C sources compiled into the one library
 SOURCES = ("softmax_apply.c", "upsample_guide.c", "feed_rows.c", "residual_regression.c", "branch_features.c",
-           "guided_blend.c")
+           "guided_blend.c", "guided_softmax.c")
 #: headers they include (part of the cache key)
-HEADERS = ("kpcn_math.h",)
+HEADERS = ("kpcn_math.h", "rows.h")
 #: compiler flags: vectorised for this CPU; the sources' sums and polynomials are written for float rounding,
 #: no flag that changes a result beyond it (no -ffast-math)
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp", "-fPIC", "-shared", "-std=c99")
@@ -117,6 +117,11 @@ def _build() -> tuple[ctypes.CDLL | None, str]:
     lib.upsample_guide_rows.argtypes = [ptr, i64, i64, i32, i32, ptr, i64, i64, i32, i32, ptr, i32, ptr, i64, i64,
                                         ptr, i32]
     lib.upsample_guide_rows.restype = None
+    # low + strides, rows, width; guide + strides, channels, bf16; weights, k, s; img + strides, channels; out +
+    # strides; scratch; threads
+    lib.guided_softmax_rows.argtypes = [ptr, i64, i64, i32, i32, ptr, i64, i64, i32, i32, ptr, i32, f32, ptr, i64, i64,
+                                        i32, ptr, i64, i64, ptr, i32]
+    lib.guided_softmax_rows.restype = None
     # f, its strides, rows, width, channels; coarse + strides; fine guide + strides; coarse guide + strides; guide
     # channels, sigma; alpha, its row stride; beta, its row stride; r0, n; out + strides; scratch; threads
     lib.guided_blend_rows.argtypes = [ptr, i64, i64, i32, i32, i32, ptr, i64, i64, ptr, i64, i64, ptr, i64, i64,

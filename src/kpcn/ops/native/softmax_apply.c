@@ -14,13 +14,14 @@
  * (one thread pool: no second set of threads spinning beside torch's).
  */
 #include "kpcn_math.h"
+#include "rows.h"
 
 #define BLOCK 64
 
-/* One row y of the output (see softmax_apply_rows). */
-static void softmax_apply_row(const float *z, int64_t z_c, int64_t z_y, int k, float s,
-                              const float *img, int64_t i_c, int64_t i_y, int channels,
-                              float *out, int64_t o_c, int64_t o_y, int y, int width) {
+/* One row y of the output (see softmax_apply_rows); z_y may be 0 (one row of logits for every y). */
+void kpcn_softmax_apply_row(const float *z, int64_t z_c, int64_t z_y, int k, float s,
+                            const float *img, int64_t i_c, int64_t i_y, int channels,
+                            float *out, int64_t o_c, int64_t o_y, int y, int width) {
     const int taps = k * k;
     const float log2e = 1.4426950408889634f;
     const float in_scale = -2.0f * log2e / s;  /* sigmoid(2z/s) = 1 / (1 + 2^(in_scale z)) */
@@ -66,5 +67,5 @@ void softmax_apply_rows(const float *z, int64_t z_c, int64_t z_y, int k, float s
                         float *out, int64_t o_c, int64_t o_y, int height, int width, int threads) {
     #pragma omp parallel for num_threads(threads) schedule(static)
     for (int y = 0; y < height; ++y)
-        softmax_apply_row(z, z_c, z_y, k, s, img, i_c, i_y, channels, out, o_c, o_y, y, width);
+        kpcn_softmax_apply_row(z, z_c, z_y, k, s, img, i_c, i_y, channels, out, o_c, o_y, y, width);
 }

@@ -10,14 +10,15 @@
  * matrix product; here each output row is made in the cache. Rows split between `threads` OpenMP threads.
  */
 #include "kpcn_math.h"
+#include "rows.h"
 #ifdef _OPENMP
 #include <omp.h>
 #endif
 
-static void upsample_guide_row(const float *low, int64_t l_c, int64_t l_y, int low_w,
-                               const void *guide, int64_t g_c, int64_t g_y, int g_channels, int guide_bf16,
-                               const float *wg, int channels, float *out, int64_t o_c, int64_t o_y, int r,
-                               float *gbuf, float *vbuf) {
+void kpcn_upsample_guide_row(const float *low, int64_t l_c, int64_t l_y, int low_w,
+                             const void *guide, int64_t g_c, int64_t g_y, int g_channels, int guide_bf16,
+                             const float *wg, int channels, float *out, int64_t o_c, int64_t o_y, int r,
+                             float *gbuf, float *vbuf) {
     const int width = 2 * low_w;
     const int u = r + 2;                      /* the row of the whole upsampled band */
     const int i = u / 2, n = (u % 2) ? i + 1 : i - 1;
@@ -67,7 +68,7 @@ void upsample_guide_rows(const float *low, int64_t l_c, int64_t l_y, int low_row
         float *gbuf = scratch + t * per, *vbuf = gbuf + (int64_t)g_channels * 2 * low_w;
         #pragma omp for schedule(static)
         for (int r = 0; r < rows; ++r)
-            upsample_guide_row(low, l_c, l_y, low_w, guide, g_c, g_y, g_channels, guide_bf16, wg, channels,
-                               out, o_c, o_y, r, gbuf, vbuf);
+            kpcn_upsample_guide_row(low, l_c, l_y, low_w, guide, g_c, g_y, g_channels, guide_bf16, wg, channels,
+                                    out, o_c, o_y, r, gbuf, vbuf);
     }
 }
