@@ -303,7 +303,7 @@ class RowStream:
         # head's other channels (the blend's weights, the albedo's logits) are made as a band
         filtered = guided_softmax_native(low, guide, w_guide, colour, cfg.kernel_size, cfg.logit_scale) \
             if self._fr_low is None and not nm else None
-        if filtered is not None:
+        if filtered is not None:  # the library that just ran takes the rest too (None only where there is none)
             tail = upsample_guide_native(low[:, kk:], guide, w_guide[kk:]) if low.shape[1] > kk else None
         else:
             z = upsample_guide_native(low, guide, w_guide)
@@ -316,7 +316,7 @@ class RowStream:
         mix = torch.sigmoid(tail[:, nb + na:]) if nm else None
         i0, n = r0 - e0, r1 - r0
         out = {}
-        if self._albedo is not None:  # before the logits' softmax (in place in z)
+        if self._albedo is not None:  # its logits made weights in place (a slice of this band's own tail)
             out[self.ALBEDO] = self._albedo_rows(tail[:, nb:nb + na], e0, e1)[..., i0:i0 + n, :]
         if filtered is None:  # z is this band's own: its logits made weights in place on the PyTorch path
             filtered = _softmax_apply(z[:, :kk], colour, cfg.kernel_size, cfg.logit_scale, mix)
