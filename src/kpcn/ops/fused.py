@@ -81,6 +81,21 @@ def softmax_apply_native(logits: torch.Tensor, padded: torch.Tensor, kernel_size
     return out
 
 
+def _guided_band(low: torch.Tensor, guide: torch.Tensor, weight: torch.Tensor, caller: str) -> bool:
+    """The checks both guided-head wrappers make of a band (:func:`upsample_guide_native`,
+    :func:`guided_softmax_native`): False where the native path does not take these tensors (dtype, device, a
+    gradient, a batch); a ValueError naming ``caller`` where ``low`` ``(1, O, n + 2, w)``, ``guide`` ``(1, G, 2n, 2w)``
+    and ``weight`` ``(O, G)`` do not fit each other."""
+    if not (_plain(low, rows=True) and _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)) or \
+            (torch.is_grad_enabled() and weight.requires_grad) or low.shape[0] != 1 or guide.shape[0] != 1:
+        return False
+    _, o, lr, lw = low.shape
+    if lr < 3 or guide.shape[-2:] != (2 * lr - 4, 2 * lw) or tuple(weight.shape) != (o, guide.shape[1]):
+        raise ValueError(f"{caller}: low {tuple(low.shape)} (1, O, n + 2, w), guide {tuple(guide.shape)} "
+                         f"and weight {tuple(weight.shape)} do not fit: want guide (1, G, 2n, 2w), weight (O, G)")
+    return True
+
+
 def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.Tensor) -> torch.Tensor | None:
     """The guided head's full-resolution output for a band: ``upsample2(low, context_rows=True) + W_g · guide``
     (:func:`kpcn.models.layers.upsample2`, :meth:`kpcn.models.kernel_heads.GuidedHead.add_guide_part_`).
@@ -94,18 +109,13 @@ def upsample_guide_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     Returns:
         ``(1, O, 2n, 2w)`` float32 contiguous, or None where the native path does not apply.
     """
-    if not (_plain(low, rows=True) and _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)) or \
-            (torch.is_grad_enabled() and weight.requires_grad) or low.shape[0] != 1 or guide.shape[0] != 1:
+    if not _guided_band(low, guide, weight, "upsample_guide_native"):
         return None
-    _, o, lr, lw = low.shape
-    g = guide.shape[1]
-    if lr < 3 or guide.shape[-2:] != (2 * lr - 4, 2 * lw) or tuple(weight.shape) != (o, g):
-        raise ValueError(f"upsample_guide_native: low {tuple(low.shape)} (1, O, n + 2, w), guide {tuple(guide.shape)} "
-                         f"and weight {tuple(weight.shape)} do not fit: want guide (1, G, 2n, 2w), weight (O, G)")
     lib = native.library()
     if lib is None:
         return None
-    rows = 2 * lr - 4
+    _, o, lr, lw = low.shape
+    g, rows = guide.shape[1], 2 * lr - 4
     out = torch.empty(1, o, rows, 2 * lw, dtype=torch.float32)
     wg = weight.detach().to(torch.float32).contiguous()
     threads = _threads(rows)
@@ -133,17 +143,14 @@ def guided_softmax_native(low: torch.Tensor, guide: torch.Tensor, weight: torch.
     """
     k, s = int(kernel_size), float(logit_scale)
     kk = k * k
-    if not (_plain(low, padded, rows=True) and _plain(guide, dtypes=(torch.float32, torch.bfloat16), rows=True)) or \
-            (torch.is_grad_enabled() and weight.requires_grad) or low.shape[0] != 1 or guide.shape[0] != 1 or \
-            padded.shape[0] != 1 or not (0 < s <= MAX_NATIVE_SCALE and k % 2 == 1 and k <= MAX_NATIVE_KERNEL):
+    if not (_plain(padded, rows=True) and padded.shape[0] == 1 and 0 < s <= MAX_NATIVE_SCALE and k % 2 == 1
+            and k <= MAX_NATIVE_KERNEL) or not _guided_band(low, guide, weight, "guided_softmax_native"):
         return None
     _, o, lr, lw = low.shape
     g, rows, width = guide.shape[1], 2 * lr - 4, 2 * lw
-    if lr < 3 or o < kk or guide.shape[-2:] != (rows, width) or weight.shape[0] != o or weight.shape[1] != g or \
-            padded.shape[-2:] != (rows + k - 1, width + k - 1):
-        raise ValueError(f"guided_softmax_native: low {tuple(low.shape)} (1, O >= {kk}, n + 2, w), guide "
-                         f"{tuple(guide.shape)}, weight {tuple(weight.shape)} and padded {tuple(padded.shape)} do not "
-                         f"fit: want guide (1, G, 2n, 2w), weight (O, G), padded (1, C, 2n + {k - 1}, 2w + {k - 1})")
+    if o < kk or padded.shape[-2:] != (rows + k - 1, width + k - 1):
+        raise ValueError(f"guided_softmax_native: low {tuple(low.shape)} (1, O >= {kk}, n + 2, w) and padded "
+                         f"{tuple(padded.shape)} do not fit: want padded (1, C, 2n + {k - 1}, 2w + {k - 1})")
     lib = native.library()
     if lib is None:
         return None
