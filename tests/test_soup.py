@@ -109,15 +109,17 @@ def test_blend_state_keeps_integer_tensors_and_refuses_differing_ones():
 
 def test_shipped_blends_are_the_blends_their_metadata_records():
     """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default's
-    file, wide64n's, names its two runs (not shipped: results/) at a quarter each and wide64e (shipped) at half;
-    wide64f's names its two runs with equal parts, and wide64m its three."""
+    file, wide64q's, names its two runs (not shipped: results/) at a quarter each and wide64neg (shipped) at half,
+    as wide64n's names its two runs and wide64e; wide64f's names its two runs with equal parts, and wide64m its
+    three."""
     from kpcn.inference.weights import resolve_weights
 
-    record, _ = read_weights(resolve_weights("unet_kpcn"))
-    src = record["soup"]["sources"]
-    assert [s["alpha"] for s in src] == [0.25, 0.25, 0.5] and src[2]["name"] == "unet_kpcn:wide64e"
-    assert src[0]["sha256"] != src[1]["sha256"]  # two different runs, not one run twice
-    assert src[2]["sha256"] == hashlib.sha256(resolve_weights("unet_kpcn:wide64e").read_bytes()).hexdigest()
+    for tag, base in (("unet_kpcn", "unet_kpcn:wide64neg"), ("unet_kpcn:wide64n", "unet_kpcn:wide64e")):
+        record, _ = read_weights(resolve_weights(tag))
+        src = record["soup"]["sources"]
+        assert [s["alpha"] for s in src] == [0.25, 0.25, 0.5] and src[2]["name"] == base
+        assert src[0]["sha256"] != src[1]["sha256"]  # two different runs, not one run twice
+        assert src[2]["sha256"] == hashlib.sha256(resolve_weights(base).read_bytes()).hexdigest()
     record, _ = read_weights(resolve_weights("unet_kpcn:wide64f"))
     src = record["soup"]["sources"]
     assert len(src) == 2 and all(s["alpha"] == pytest.approx(1 / 2) and len(s["sha256"]) == 64 for s in src)
