@@ -81,14 +81,15 @@ def test_a_tag_sets_config_over_its_file():
     # the default has the stage too, with the smaller ridge that wide64e (wide64f's file) set over its file
     f, e = weights_entry("unet_kpcn", "wide64f"), weights_entry("unet_kpcn", "wide64e")
     n = weights_entry("unet_kpcn", "wide64n")
-    assert default.tag == "wide64q" and e.path == f.path and dict(f.config) == dict(r.config)
+    assert default.tag == "wide64v" and e.path == f.path and dict(f.config) == dict(r.config)
     assert dict(n.config) == dict(e.config) == {**dict(r.config), "detail_eps": 0.001}
     # wide64neg is wide64n's file and settings with the normal-guided blend and the exposure gain on top; the
-    # default, wide64q, is its own file (wide64neg fine-tuned) with wide64neg's settings
+    # default, wide64v, is its own file (wide64neg fine-tuned), as is wide64q before it, with wide64neg's settings
     ne, neg = weights_entry("unet_kpcn", "wide64ne"), weights_entry("unet_kpcn", "wide64neg")
     assert ne.path == n.path and dict(ne.config) == {**dict(n.config), "edge_upsample": 0.5}
     assert neg.path == n.path and dict(neg.config) == {**dict(ne.config), "exposure_gain": 1.5}
-    assert default.path != n.path and dict(default.config) == dict(neg.config)
+    q = weights_entry("unet_kpcn", "wide64q")
+    assert len({default.path, q.path, n.path}) == 3 and dict(default.config) == dict(q.config) == dict(neg.config)
     assert dict(h.config) == keys
     assert load_model("unet_kpcn", "cpu").detail_regression == (6, 0.001, 0.15)
     staged, plain = load_model("unet_kpcn:wide64r", "cpu"), load_model("unet_kpcn:wide64h", "cpu")

@@ -109,17 +109,21 @@ def test_blend_state_keeps_integer_tensors_and_refuses_differing_ones():
 
 def test_shipped_blends_are_the_blends_their_metadata_records():
     """unet_kpcn:wide64h's file names its sources; the shipped one of them is unet_kpcn:wide64c. The default's
-    file, wide64q's, names its two runs (not shipped: results/) at a quarter each and wide64neg (shipped) at half,
-    as wide64n's names its two runs and wide64e; wide64f's names its two runs with equal parts, and wide64m its
-    three."""
+    file, wide64v's, names its four runs (not shipped: results/) at an eighth each and wide64neg (shipped) at half;
+    wide64q's names two of those runs at a quarter each and wide64neg at half, as wide64n's names its two runs and
+    wide64e; wide64f's names its two runs with equal parts, and wide64m its three."""
     from kpcn.inference.weights import resolve_weights
 
-    for tag, base in (("unet_kpcn", "unet_kpcn:wide64neg"), ("unet_kpcn:wide64n", "unet_kpcn:wide64e")):
+    runs = {}
+    for tag, base, n in (("unet_kpcn", "unet_kpcn:wide64neg", 4), ("unet_kpcn:wide64q", "unet_kpcn:wide64neg", 2),
+                         ("unet_kpcn:wide64n", "unet_kpcn:wide64e", 2)):
         record, _ = read_weights(resolve_weights(tag))
         src = record["soup"]["sources"]
-        assert [s["alpha"] for s in src] == [0.25, 0.25, 0.5] and src[2]["name"] == base
-        assert src[0]["sha256"] != src[1]["sha256"]  # two different runs, not one run twice
-        assert src[2]["sha256"] == hashlib.sha256(resolve_weights(base).read_bytes()).hexdigest()
+        assert [s["alpha"] for s in src] == [0.5 / n] * n + [0.5] and src[n]["name"] == base
+        assert len({s["sha256"] for s in src[:n]}) == n  # different runs, not one run twice
+        assert src[n]["sha256"] == hashlib.sha256(resolve_weights(base).read_bytes()).hexdigest()
+        runs[tag] = {s["sha256"] for s in src[:n]}
+    assert runs["unet_kpcn:wide64q"] < runs["unet_kpcn"]  # the default blends wide64q's two runs and two more
     record, _ = read_weights(resolve_weights("unet_kpcn:wide64f"))
     src = record["soup"]["sources"]
     assert len(src) == 2 and all(s["alpha"] == pytest.approx(1 / 2) and len(s["sha256"]) == 64 for s in src)

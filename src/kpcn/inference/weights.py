@@ -31,8 +31,8 @@ from ..models import DenoiserModel, is_model, list_models, list_weights, weights
 __all__ = ["DEFAULT_MODEL", "DEFAULT_BY_SPEC", "DefaultWeightsMissing", "choose_default", "load_model",
            "resolve_weights", "resolve_device", "describe"]
 
-#: the model ``denoise(path)`` uses when none is given, with its default shipped weights: unet_kpcn:wide64q
-#: (configs/unet_wide64q.yaml, with the detail stage at detail_eps 0.001)
+#: the model ``denoise(path)`` uses when none is given, with its default shipped weights: unet_kpcn:wide64v
+#: (configs/unet_wide64v.yaml, with the detail stage at detail_eps 0.001)
 DEFAULT_MODEL = "unet_kpcn"
 
 #: the shipped model used, when none is given, for a file whose best input spec is the key (in this order)

@@ -224,9 +224,17 @@ register_weights("unet_kpcn", "wide64u", "unet_wide64u.safetensors",
                              "in bfloat16 where the CPU has it (configs/unet_wide64u.yaml): wide64g trained about 2400 "
                              "steps (batch 32 of 128²) on one GPU on 65 procedural 256x256 scenes rendered there, then "
                              "turned into up_kernel 1 and trained 7000 steps (batch 4) on the CPU on 87 + 24 scenes")
-# wide64neg's inference settings over wide64n's file, kept by its fine-tuned successor wide64q
+# wide64neg's inference settings over wide64n's file, kept by its fine-tuned successors wide64q and wide64v
 WIDE64NEG_SETTINGS = dict(DETAIL_STAGE, detail_eps=0.001, edge_upsample=0.5, exposure_gain=1.5)
-register_weights("unet_kpcn", "wide64q", "unet_wide64q.safetensors", default=True,
+register_weights("unet_kpcn", "wide64v", "unet_wide64v.safetensors", default=True,
+                 config=WIDE64NEG_SETTINGS,
+                 description="unet_kpcn:wide64neg (the same network and settings, 98 k multiply-adds per pixel) "
+                             "fine-tuned on the CPU on up to 581 fresh procedural 256x256 scenes "
+                             "(configs/unet_wide64v.yaml): wide64q's two runs of 600 steps on 432 scenes and two of "
+                             "1800 steps on 581, each from wide64ne, without and with the converged pairs, blended "
+                             "1/8 each + 1/2 wide64neg (python -m kpcn.soup); chosen on the validation scenes "
+                             "random:950001-950010 (docs/measured.md, forty-sixth session)")
+register_weights("unet_kpcn", "wide64q", "unet_wide64q.safetensors",
                  config=WIDE64NEG_SETTINGS,
                  description="unet_kpcn:wide64neg (the same network and settings, 98 k multiply-adds per pixel) "
                              "fine-tuned on the CPU on 432 fresh procedural 256x256 scenes (configs/unet_wide64q.yaml): "
