@@ -392,6 +392,25 @@ def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
     assert np.isfinite(read_exr(tmp_path / "ds" / "random_0" / "reference.exr")["color"]).all()
 
 
+def test_training_names_the_revision_a_data_set_has(mi, tmp_path, caplog):
+    """Frames one revision behind (albedo 2, normal 3: glass and mirrors' own guides) are named by that revision and
+    what it lacks, not as revision 1."""
+    from kpcn.train_data import warn_outdated_albedo
+
+    root = tmp_path / "data"
+    render_dataset(root, 1, **{**SMALL, "first_seed": 6})
+    m = json.loads((root / "manifest.json").read_text())
+    for rec in m["scenes"][0]["frames"].values():
+        rec["albedo"], rec["normal"] = ALBEDO_REVISION - 1, NORMAL_REVISION - 1
+    (root / "manifest.json").write_text(json.dumps(m))
+    with caplog.at_level(logging.WARNING, logger="kpcn.train"):
+        assert warn_outdated_albedo([root]) == 2
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert f"2 of 2 frames have albedo revision {ALBEDO_REVISION - 1} (that of glass and mirrors" in said
+    assert f"2 of 2 frames have normal revision {NORMAL_REVISION - 1} (that of glass and mirrors" in said
+    assert "revision 1" not in said
+
+
 def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, monkeypatch, caplog):
     """A data set rendered before normal revision 2 (the unmapped normal): training names the command that updates
     it, which re-renders the normal layers alone, as a fresh render writes them (the current revision); every other

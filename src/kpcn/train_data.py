@@ -56,6 +56,11 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
 
 #: outdated data sets named one by one in training's warnings; the others are counted in one line
 NAMED_OUTDATED = 3
+#: what an older albedo or normal revision (kpcn.integrator) lacks, as the warnings say it
+_ALBEDO_BEFORE = {1: "Mitsuba's eval_diffuse_reflectance: up to 37 on rough metals",
+                  2: "that of glass and mirrors themselves, not of what they show"}
+_NORMAL_BEFORE = {1: "blind to bump and normal maps", 2: "blind to normal maps",
+                  3: "that of glass and mirrors themselves, not of what they show"}
 
 
 def warn_outdated_albedo(roots) -> int:
@@ -71,7 +76,8 @@ def warn_outdated_albedo(roots) -> int:
         status = dataset_status(root)
         frames = [rec for sc in (status.manifest or {}).get("scenes", []) for rec in sc.get("frames", {}).values()]
         mitsuba = [rec for rec in frames if not is_generated(rec.get("source"))]
-        old = sum(1 for rec in mitsuba if rec.get("albedo", 1) < ALBEDO_REVISION)
+        albedo_revs = [rec.get("albedo", 1) for rec in mitsuba]
+        old = sum(1 for v in albedo_revs if v < ALBEDO_REVISION)
         normal_revs = [rec.get("normal", 1) for rec in mitsuba]
         old_normal = sum(1 for v in normal_revs if v < NORMAL_REVISION)
         total += max(old, old_normal)
@@ -82,13 +88,13 @@ def warn_outdated_albedo(roots) -> int:
             continue
         named += 1
         if old:
-            log.warning("%s: %d of %d frames have albedo revision 1 (Mitsuba's eval_diffuse_reflectance: up to 37 "
-                        "on rough metals); `%s` rewrites their albedo layers only", root, old, len(frames),
-                        status.command())
+            rev = min(albedo_revs)
+            log.warning("%s: %d of %d frames have albedo revision %d (%s); `%s` rewrites their albedo layers only",
+                        root, old, len(frames), rev, _ALBEDO_BEFORE.get(rev, "outdated"), status.command())
         if old_normal:
-            blind = "bump and normal maps" if min(normal_revs) < 2 else "normal maps"
-            log.warning("%s: %d of %d frames have normal revision %d (blind to %s); `%s` rewrites their normal "
-                        "layers only", root, old_normal, len(frames), min(normal_revs), blind, status.command())
+            rev = min(normal_revs)
+            log.warning("%s: %d of %d frames have normal revision %d (%s); `%s` rewrites their normal layers only",
+                        root, old_normal, len(frames), rev, _NORMAL_BEFORE.get(rev, "outdated"), status.command())
     if more:
         log.warning("%d more data sets (%d frames, %s ...) have outdated albedo or normal layers; `python -m "
                     "kpcn.render dataset` with each one's own arguments rewrites those layers only", len(more),
