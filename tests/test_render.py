@@ -144,74 +144,35 @@ def _sphere_scene(mi, bsdf: dict) -> dict:
 
 
 def test_albedo_of_metal_and_glass_is_their_directional_albedo(mi):
-    """Revision 2: a rough metal's albedo is its Fresnel colour, rough clear glass's about 1, both within [0, 1]
-    (Mitsuba's eval_diffuse_reflectance, revision 1, gave a metal seen head-on its glossy peak: up to 37).
-    Revision 3: smooth glass that shows only the sky has the sky's albedo, 0 (but for a sample still inside the ball
-    after CHASE_BOUNCES delta bounces, which keeps the glass's own, 1)."""
+    """Revision 2: a rough metal's albedo is its Fresnel colour, clear glass's 1, both within [0, 1]
+    (Mitsuba's eval_diffuse_reflectance, revision 1, gave a metal seen head-on its glossy peak: up to 37)."""
     from kpcn.integrator import ALBEDO_REVISION
 
     metal = render_frame(_sphere_scene(mi, {"type": "roughconductor", "material": "Al", "alpha": 0.15}), spp=16, seed=1)
-    glass = render_frame(_sphere_scene(mi, {"type": "roughdielectric", "int_ior": 1.5, "alpha": 0.05}), spp=16, seed=1)
-    smooth = render_frame(_sphere_scene(mi, {"type": "dielectric", "int_ior": 1.5}), spp=16, seed=1)
+    glass = render_frame(_sphere_scene(mi, {"type": "dielectric", "int_ior": 1.5}), spp=16, seed=1)
     diffuse = render_frame(_sphere_scene(mi, {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.3}}), spp=4)
     assert metal.meta["albedoRevision"] == ALBEDO_REVISION
     # (a rough metal loses some energy to masking near grazing angles: 0.6, not 0.9, at its rim)
-    cases = ((metal, 0.6, 1.0), (glass, 0.97, 1.0), (smooth, 0.0, 2 / 16), (diffuse, 0.3 - 1e-6, 0.3 + 1e-6))
-    for f, low, high in cases:
+    for f, low, high in ((metal, 0.6, 1.0), (glass, 0.97, 1.0), (diffuse, 0.3 - 1e-6, 0.3 + 1e-6)):
         inner = f["depth"][..., 0] > 0
         for axis in (0, 1):  # pixels whose four neighbours hit too (silhouettes average hits with the sky)
             inner &= np.roll(inner, 1, axis) & np.roll(inner, -1, axis)
         a = f["albedo"][inner]
         assert inner.sum() > 100 and low <= a.min() and a.max() <= high, (a.min(), a.max())
-    assert smooth["albedo"].mean() < 0.01
     # seen head-on, aluminium's Fresnel reflectance: about 0.9
     centre = metal["albedo"][10:14, 10:14]
     assert np.all((centre > 0.85) & (centre < 0.95)), centre
 
 
-@pytest.mark.parametrize("scene", ["test:glossy", "test:glass"])
-def test_albedo_only_render_writes_what_a_full_render_writes(mi, scene):
-    """The same seed and role: the albedo pass gives the full render's albedo, normal and depth bit for bit (in
-    test:glass, behind the glass's delta bounces too)."""
-    full = render_frame(scene, spp=8, seed=4, role=7, resolution=(24, 24))
-    alone = render_frame(scene, spp=8, seed=4, role=7, resolution=(24, 24), albedo_only=True)
+def test_albedo_only_render_writes_what_a_full_render_writes(mi):
+    """The same seed and role: the albedo pass gives the full render's albedo, normal and depth bit for bit."""
+    full = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24))
+    alone = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24), albedo_only=True)
     for name in ("albedo", "albedoVariance", "normal", "normalVariance", "depth"):
         assert np.array_equal(full[name], alone[name]), name
     assert full["albedo"].max() <= 1 and alone["color"].max() == 0 and full["color"].max() > 0
-    other = render_frame(scene, spp=8, seed=4, role=8, resolution=(24, 24), albedo_only=True)
+    other = render_frame("test:glossy", spp=8, seed=4, role=8, resolution=(24, 24), albedo_only=True)
     assert not np.array_equal(other["albedo"], alone["albedo"])  # another role, other samples
-
-
-def _pane_scene(mi, pane: dict) -> dict:
-    """A red wall seen head-on (normal +z), its left half behind a pane tilted 45 degrees about y."""
-    T = mi.ScalarTransform4f
-    return {"type": "scene",
-            "sensor": {"type": "perspective", "fov": 40, "to_world": T().look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
-                       "film": {"type": "hdrfilm", "width": 32, "height": 32}},
-            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}},
-            "wall": {"type": "rectangle", "to_world": T().scale(5.0),
-                     "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.2, 0.1]}}},
-            "pane": {"type": "rectangle", "to_world": T().translate([-0.7, 0, 2]).rotate([0, 1, 0], 45).scale(
-                [1, 3, 1]), "bsdf": pane}}
-
-
-@pytest.mark.parametrize("pane", [{"type": "thindielectric"}, {"type": "dielectric"}])
-def test_guides_behind_glass_are_what_it_shows(mi, pane):
-    """Albedo revision 3, normal revision 4: behind a delta surface the albedo and normal are those of the surface
-    the delta bounces reach, times their weights, 0 where they escape (revision 2 wrote the pane's own: albedo
-    about 1, its tilted normal)."""
-    f = render_frame(_pane_scene(mi, pane), spp=32, seed=3)
-    wall = np.array([0.8, 0.2, 0.1], np.float32)
-    behind, bare = f["albedo"][4:28, 2:10], f["albedo"][4:28, 24:30]
-    np.testing.assert_allclose(bare, np.broadcast_to(wall, bare.shape), rtol=1e-6)
-    # each sample sees the wall through the pane (weight 1) or the sky by reflection (0): the wall's colour, scaled
-    share = behind / wall
-    np.testing.assert_allclose(share, share[..., :1].repeat(3, -1), rtol=1e-4)
-    assert 0.75 < share.mean() < 0.98 and share.min() > 0.4, (share.mean(), share.min())
-    n = f["normal"][4:28, 2:10]
-    # the wall's normal (0, 0, 1), not the pane's (±0.71, 0, 0.71), in the same share
-    assert np.abs(n[..., :2]).max() < 1e-5, np.abs(n[..., :2]).max()
-    np.testing.assert_allclose(n[..., 2], share[..., 0], atol=1e-5)
 
 
 def test_cli_writes_contract_exr(mi, tmp_path):
