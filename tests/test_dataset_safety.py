@@ -393,10 +393,12 @@ def test_cli_dataset_renders_resumes_and_reports(mi, tmp_path):
 
 
 def test_training_names_the_revision_a_data_set_has(mi, tmp_path, caplog):
-    """Frames one revision behind (albedo 2, normal 3: glass and mirrors' own guides) are named by that revision and
-    what it lacks, not as revision 1."""
-    from kpcn.train_data import warn_outdated_albedo
+    """Frames one revision behind are named by that revision and what it lacks; every older revision has its
+    description (a new revision without one would name nothing)."""
+    from kpcn.train_data import _ALBEDO_BEFORE, _NORMAL_BEFORE, warn_outdated_albedo
 
+    assert set(_ALBEDO_BEFORE) == set(range(1, ALBEDO_REVISION))
+    assert set(_NORMAL_BEFORE) == set(range(1, NORMAL_REVISION))
     root = tmp_path / "data"
     render_dataset(root, 1, **{**SMALL, "first_seed": 6})
     m = json.loads((root / "manifest.json").read_text())
@@ -406,9 +408,9 @@ def test_training_names_the_revision_a_data_set_has(mi, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="kpcn.train"):
         assert warn_outdated_albedo([root]) == 2
     said = " ".join(r.getMessage() for r in caplog.records)
-    assert f"2 of 2 frames have albedo revision {ALBEDO_REVISION - 1} (that of glass and mirrors" in said
-    assert f"2 of 2 frames have normal revision {NORMAL_REVISION - 1} (that of glass and mirrors" in said
-    assert "revision 1" not in said
+    for kind, rev, what in (("albedo", ALBEDO_REVISION - 1, _ALBEDO_BEFORE), ("normal", NORMAL_REVISION - 1,
+                                                                                 _NORMAL_BEFORE)):
+        assert f"2 of 2 frames have {kind} revision {rev} ({what[rev]})" in said, said
 
 
 def test_frames_of_an_older_normal_revision_get_their_normal_only(mi, tmp_path, monkeypatch, caplog):

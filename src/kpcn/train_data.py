@@ -57,10 +57,8 @@ def ensure_dataset(cfg: RunConfig, is_main: bool = True, progress: bool = True) 
 #: outdated data sets named one by one in training's warnings; the others are counted in one line
 NAMED_OUTDATED = 3
 #: what an older albedo or normal revision (kpcn.integrator) lacks, as the warnings say it
-_ALBEDO_BEFORE = {1: "Mitsuba's eval_diffuse_reflectance: up to 37 on rough metals",
-                  2: "that of glass and mirrors themselves, not of what they show"}
-_NORMAL_BEFORE = {1: "blind to bump and normal maps", 2: "blind to normal maps",
-                  3: "that of glass and mirrors themselves, not of what they show"}
+_ALBEDO_BEFORE = {1: "Mitsuba's eval_diffuse_reflectance: up to 37 on rough metals"}
+_NORMAL_BEFORE = {1: "blind to bump and normal maps", 2: "blind to normal maps"}
 
 
 def warn_outdated_albedo(roots) -> int:
