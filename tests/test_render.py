@@ -164,15 +164,59 @@ def test_albedo_of_metal_and_glass_is_their_directional_albedo(mi):
     assert np.all((centre > 0.85) & (centre < 0.95)), centre
 
 
-def test_albedo_only_render_writes_what_a_full_render_writes(mi):
-    """The same seed and role: the albedo pass gives the full render's albedo, normal and depth bit for bit."""
-    full = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24))
-    alone = render_frame("test:glossy", spp=8, seed=4, role=7, resolution=(24, 24), albedo_only=True)
-    for name in ("albedo", "albedoVariance", "normal", "normalVariance", "depth"):
+@pytest.mark.parametrize("scene", ["test:glossy", "test:glass"])
+def test_albedo_only_render_writes_what_a_full_render_writes(mi, scene):
+    """The same seed and role: the albedo pass gives the full render's albedo, normal, depth and denoising guides
+    bit for bit (in test:glass, behind the glass's delta bounces too)."""
+    full = render_frame(scene, spp=8, seed=4, role=7, resolution=(24, 24))
+    alone = render_frame(scene, spp=8, seed=4, role=7, resolution=(24, 24), albedo_only=True)
+    for name in ("albedo", "albedoVariance", "normal", "normalVariance", "depth", "denoisingAlbedo",
+                 "denoisingNormal"):
         assert np.array_equal(full[name], alone[name]), name
     assert full["albedo"].max() <= 1 and alone["color"].max() == 0 and full["color"].max() > 0
-    other = render_frame("test:glossy", spp=8, seed=4, role=8, resolution=(24, 24), albedo_only=True)
+    other = render_frame(scene, spp=8, seed=4, role=8, resolution=(24, 24), albedo_only=True)
     assert not np.array_equal(other["albedo"], alone["albedo"])  # another role, other samples
+
+
+def _pane_scene(mi, pane: dict) -> dict:
+    """A red wall seen head-on (normal +z), its left half behind a pane tilted 45 degrees about y."""
+    T = mi.ScalarTransform4f
+    return {"type": "scene",
+            "sensor": {"type": "perspective", "fov": 40, "to_world": T().look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}},
+            "wall": {"type": "rectangle", "to_world": T().scale(5.0),
+                     "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.2, 0.1]}}},
+            "pane": {"type": "rectangle", "to_world": T().translate([-0.7, 0, 2]).rotate([0, 1, 0], 45).scale(
+                [1, 3, 1]), "bsdf": pane}}
+
+
+@pytest.mark.parametrize("pane", [{"type": "thindielectric"}, {"type": "dielectric"}])
+def test_denoising_guides_behind_glass_are_what_it_shows(mi, pane):
+    """Behind a delta surface the denoising albedo and normal are those of the surface the delta bounces reach,
+    times their weights, 0 where they escape; ``albedo`` and ``normal`` stay the pane's own (its directional
+    albedo, about 1, and its tilted normal), and elsewhere the two pairs are the same."""
+    f = render_frame(_pane_scene(mi, pane), spp=32, seed=3)
+    wall = np.array([0.8, 0.2, 0.1], np.float32)
+    behind, bare = f["denoisingAlbedo"][4:28, 2:10], f["denoisingAlbedo"][4:28, 24:30]
+    np.testing.assert_allclose(bare, np.broadcast_to(wall, bare.shape), rtol=1e-6)
+    for name in ("albedo", "normal"):
+        np.testing.assert_array_equal(f[name][4:28, 24:30], f["denoising" + name.title()][4:28, 24:30])
+    # each sample sees the wall through the pane (weight 1) or the sky by reflection (0): the wall's colour, scaled
+    share = behind / wall
+    np.testing.assert_allclose(share, share[..., :1].repeat(3, -1), rtol=1e-4)
+    assert 0.75 < share.mean() < 0.98 and share.min() > 0.4, (share.mean(), share.min())
+    n = f["denoisingNormal"][4:28, 2:10]
+    # the wall's normal (0, 0, 1), not the pane's (±0.71, 0, 0.71), in the same share
+    assert np.abs(n[..., :2]).max() < 1e-5, np.abs(n[..., :2]).max()
+    np.testing.assert_allclose(n[..., 2], share[..., 0], atol=1e-5)
+    # the first-hit guides: the pane's
+    assert f["albedo"][4:28, 2:10].min() > 0.97 and np.abs(f["normal"][4:28, 2:10, 0]).min() > 0.65
+    # OIDN is given the denoising guides
+    from kpcn.baselines import oidn_guides
+
+    albedo, normal = oidn_guides(f)
+    assert albedo is f["denoisingAlbedo"] and normal is f["denoisingNormal"]
 
 
 def test_cli_writes_contract_exr(mi, tmp_path):

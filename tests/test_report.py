@@ -170,8 +170,9 @@ def test_cli_reuses_cached_renders(report, stand_in):
 
 
 def test_cached_renders_of_an_older_albedo_revision_get_their_albedo_only(report, tmp_path):
-    """A cache written before albedo revision 2: the albedo layers are rendered again (as a fresh render writes
-    them), the radiance is kept bit for bit, and nothing is rendered in full."""
+    """A cache written before albedo revision 2 and the denoising guides: the albedo layers are rendered again and
+    the denoising guides added (as a fresh render writes them), the radiance is kept bit for bit, and nothing is
+    rendered in full."""
     import dataclasses
     import shutil
 
@@ -183,16 +184,18 @@ def test_cached_renders_of_an_older_albedo_revision_get_their_albedo_only(report
     label = cfg.scenes[0]
     files = sorted((old.folder / "renders").glob(f"{label.replace(':', '_')}/*/*.exr"))
     fresh = {p: read_exr(p) for p in files}
-    for p, f in fresh.items():  # as revision 1 wrote them: no albedoRevision, another albedo
-        write_exr(p, {**f.layers, "albedo": f["albedo"] * 7 + 0.5},
+    for p, f in fresh.items():  # as revision 1 wrote them: no albedoRevision, another albedo, no denoising guides
+        layers = {k: v for k, v in f.layers.items() if not k.startswith("denoising")}
+        write_exr(p, {**layers, "albedo": f["albedo"] * 7 + 0.5},
                   {k: f.meta[k] for k in ("spp", "renderTimeSeconds", "seed", "scene")})
     said = []
     sr = render_scene(old, label, progress=said.append)
     assert sr.rendered == [] and len(said) == len(files) and all("updated the albedo" in m for m in said)
     for p, f in fresh.items():
         g = read_exr(p)
-        assert g.meta["albedoRevision"] == 2
-        for name in ("albedo", "albedoVariance", "color", "colorVariance", "normal", "depth"):
+        assert g.meta["albedoRevision"] == 2 and g.meta["denoisingRevision"] == 1
+        for name in ("albedo", "albedoVariance", "color", "colorVariance", "normal", "depth", "denoisingAlbedo",
+                     "denoisingNormal"):
             assert np.array_equal(g[name], f[name]), (p.name, name)
     render_scene(old, label, progress=lambda msg: pytest.fail(f"touched again: {msg}"))
 

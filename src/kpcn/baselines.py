@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import OIDN_ALBEDO
+from .constants import OIDN_ALBEDO, OIDN_NORMAL
 
 __all__ = ["oidn_available", "oidn_version", "oidn_denoise", "oidn_guides"]
 
@@ -33,10 +33,11 @@ def oidn_guides(frame) -> tuple[np.ndarray, np.ndarray]:
     """OIDN's auxiliary inputs ``(albedo, normal)`` from a :class:`~kpcn.io.Frame`.
 
     The albedo is the frame's ``denoisingAlbedo`` layer where it has one (Blender Cycles' Denoising
-    Albedo, which follows mirrors and glass to the next rough surface: the albedo OIDN is made for),
-    else ``albedo``.
+    Albedo and kpcn's Mitsuba renders, which follow mirrors and glass to the next rough surface: the albedo OIDN
+    is made for), else ``albedo``; the normal likewise ``denoisingNormal`` (kpcn's Mitsuba renders), else
+    ``normal``.
     """
-    return frame.get(OIDN_ALBEDO, frame["albedo"]), frame["normal"]
+    return frame.get(OIDN_ALBEDO, frame["albedo"]), frame.get(OIDN_NORMAL, frame["normal"])
 
 
 def oidn_available() -> bool:

@@ -14,6 +14,9 @@ BRANCH_LAYERS = {"diffuse": ("diffuse", "diffuseVariance"), "specular": ("specul
 #: it (the colour + albedo + normal spec, OIDN) where a frame has it: Blender Cycles' Denoising Albedo, which
 #: follows mirrors and glass to the next rough surface (``albedo`` is the diffuse albedo at the first hit)
 OIDN_ALBEDO = "denoisingAlbedo"
+#: the normal OIDN takes where a frame has it (kpcn's Mitsuba renders: behind glass and mirrors, the normal of what
+#: they show; :mod:`kpcn.integrator`), else ``normal``
+OIDN_NORMAL = "denoisingNormal"
 
 #: the compute dtypes a model's hidden layers can be asked for by name (``train.precision``,
 #: ``denoise(precision=...)`` besides ``auto``, ``DenoiserModel.set_compute_dtype``)

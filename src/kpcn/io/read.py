@@ -19,7 +19,8 @@ from .names import _canonical_layer, _group_channels, _pick_channels
 from .parts import _Part, _read_parts, _storage
 from .sanitize import sanitize_layers
 
-_HEADER_KEYS = ("spp", "renderTimeSeconds", "seed", "scene", "albedoRevision", "normalRevision")
+_HEADER_KEYS = ("spp", "renderTimeSeconds", "seed", "scene", "albedoRevision", "normalRevision",
+                "denoisingRevision")
 
 
 def _header_meta(header: Mapping) -> dict:

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..integrator import ALBEDO_REVISION, MOMENT2, NORMAL_REVISION, aov_layout
+from ..integrator import ALBEDO_REVISION, DENOISING_REVISION, MOMENT2, NORMAL_REVISION, aov_layout
 from ..io import SAMPLE_COUNT, Frame, write_exr
 from .scene import ensure_variant, load_scene
 
@@ -60,10 +60,11 @@ def render_frame(
 
     Returns:
         Frame with ``color``, ``diffuse``, ``specular``, ``albedo``, ``normal``,
-        ``depth`` and ``<layer>Variance`` (variance of the pixel mean), and meta
-        ``spp``, ``renderTimeSeconds`` (wall time of the passes), ``seed``, ``scene`` and
-        ``albedoRevision`` and ``normalRevision`` (:data:`kpcn.integrator.ALBEDO_REVISION`,
-        :data:`kpcn.integrator.NORMAL_REVISION`).
+        ``depth`` and ``<layer>Variance`` (variance of the pixel mean), ``denoisingAlbedo`` and
+        ``denoisingNormal`` (OIDN's guides, :mod:`kpcn.integrator`), and meta
+        ``spp``, ``renderTimeSeconds`` (wall time of the passes), ``seed``, ``scene``,
+        ``albedoRevision``, ``normalRevision`` and ``denoisingRevision`` (:data:`kpcn.integrator.ALBEDO_REVISION`,
+        :data:`kpcn.integrator.NORMAL_REVISION`, :data:`kpcn.integrator.DENOISING_REVISION`).
     """
     if spp < 2:
         raise ValueError(f"spp must be >= 2 to estimate variances, got {spp}")
@@ -172,7 +173,8 @@ def _layers(acc: np.ndarray, n) -> dict[str, np.ndarray]:
 
 def _meta(spp: int, seconds: float, seed: int, name) -> dict:
     return {"spp": int(spp), "renderTimeSeconds": float(seconds), "seed": int(seed), "scene": str(name),
-            "albedoRevision": ALBEDO_REVISION, "normalRevision": NORMAL_REVISION}
+            "albedoRevision": ALBEDO_REVISION, "normalRevision": NORMAL_REVISION,
+            "denoisingRevision": DENOISING_REVISION}
 
 
 def render_to_exr(scene: Any, out: str | os.PathLike, spp: int, seed: int = 0, *,

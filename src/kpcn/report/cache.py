@@ -156,12 +156,14 @@ def render_scene(cfg: ReportConfig, scene: Any, progress: Callable[[str], None] 
         fr = None if cfg.rerender else _cached(path, spp, cfg.resolution)
         outdated = [] if fr is None or is_cycles(scene) else outdated_first_hit(fr)
         if outdated:
-            # rendered before the albedo's or the normal's revision: those layers alone are rendered again
-            # (a scene of its own: `loaded` set here would skip the timed renders' warm-up below)
+            # rendered before the albedo's or the normal's revision, or the denoising guides: those layers alone
+            # are rendered (a scene of its own: `loaded` set here would skip the timed renders' warm-up below)
             for_albedo = for_albedo or load_scene(source, cfg.resolution)
             fr = update_first_hit(path, source, spp, cfg.seed, role=role, which=outdated, resolution=cfg.resolution,
                                   loaded=for_albedo)
-            progress(f"updated the {' and '.join(outdated)} of {scene_label(scene)} {spp} spp (latest revision)")
+            words = [w.replace("denoising", "denoising guides") for w in outdated]
+            what = " and ".join([", ".join(words[:-1]), words[-1]] if len(words) > 1 else words)
+            progress(f"updated the {what} of {scene_label(scene)} {spp} spp (latest revision)")
         if fr is None and is_cycles(scene):  # Blender: one child process per render; Cycles times itself
             from ..render.cycles import render_cycles
 
