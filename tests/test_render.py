@@ -280,6 +280,14 @@ def test_extended_frame_is_the_longer_render(mi):
     assert not np.allclose(short["color"], direct["color"])  # the added passes are new samples
     with pytest.raises(ValueError, match="not at least 2 above"):
         extend_frame(short, "test:glossy", 5, 3, **kw)
+    # a frame rendered before the denoising guides is extended without them, as its header says
+    from kpcn.io import Frame
+
+    old = Frame({k: v for k, v in short.layers.items() if not k.startswith("denoising")},
+                {k: v for k, v in short.meta.items() if k != "denoisingRevision"})
+    older = extend_frame(old, "test:glossy", 8, 3, **kw)
+    assert sorted(older.layers) == sorted(old.layers) and "denoisingRevision" not in older.meta
+    np.testing.assert_allclose(older["color"], direct["color"], rtol=1e-4, atol=1e-6)
 
 
 def test_merged_frames_are_the_union_of_their_samples():

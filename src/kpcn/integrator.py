@@ -240,6 +240,8 @@ def register() -> str:
                     beta_d *= inv_q
                     active_next &= survive
                 active = active_next & (dr.max(beta) > 0.0)
+                if not radiance:  # the albedo pass: only the lanes behind delta bounces go on
+                    active &= chasing
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
 
             return L, hit0, self._aovs(L, L_d, albedo, normal, depth, d_albedo, d_normal)

@@ -8,6 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..constants import OIDN_ALBEDO, OIDN_NORMAL
 from ..integrator import ALBEDO_REVISION, DENOISING_REVISION, MOMENT2, NORMAL_REVISION, aov_layout
 from ..io import SAMPLE_COUNT, Frame, write_exr
 from .scene import ensure_variant, load_scene
@@ -284,6 +285,9 @@ def extend_frame(frame: Frame, scene: Any, spp: int, seed: int = 0, *, role: int
     when ``frame.spp`` is a multiple of ``pass_spp`` the result is the direct render of ``spp`` samples. ``kw`` goes
     to :func:`render_frame` (``resolution``, ``max_depth``, ``loaded``, ...).
 
+    A frame rendered before the denoising guides (no ``denoisingAlbedo``/``denoisingNormal``) is extended without
+    them, as its header says (:func:`kpcn.render.albedo.update_first_hit` adds them).
+
     Raises:
         ValueError: ``spp`` is not above ``frame.spp``, or fewer than 2 samples would be added.
     """
@@ -292,4 +296,7 @@ def extend_frame(frame: Frame, scene: Any, spp: int, seed: int = 0, *, role: int
         raise ValueError(f"extend_frame: {spp} spp is not at least 2 above the frame's {frame.spp}")
     extra = render_frame(scene, more, seed, role=role, pass_spp=pass_spp, first_pass=n_passes(frame.spp, pass_spp),
                          **kw)
+    for name in (OIDN_ALBEDO, OIDN_NORMAL):  # a frame from before the denoising guides stays without them
+        if name not in frame.layers:
+            extra.layers.pop(name, None)
     return merge_frames(frame, extra)
