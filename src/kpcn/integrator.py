@@ -141,14 +141,14 @@ def register() -> str:
             d_albedo, d_normal = mi.Color3f(albedo), mi.Vector3f(normal)
             chasing = mi.Bool(False)
             chain = mi.Color3f(1.0)
-            last = self.chase_bounces if self.albedo_only else self.max_depth
+            radiance = not self.albedo_only  # the albedo pass: no light, only the bounces the guides need
+            last = self.max_depth if radiance else self.chase_bounces
 
             prev_si = dr.zeros(mi.SurfaceInteraction3f)
             prev_bsdf_pdf = mi.Float(1.0)
             prev_bsdf_delta = mi.Bool(True)
 
             for bounce in range(last + 1):
-                radiance = not self.albedo_only
                 # -- emission reached by the current ray (MIS against NEE) ------------
                 if radiance:
                     ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
