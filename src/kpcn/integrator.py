@@ -39,6 +39,8 @@ registers the plugin.
 """
 from __future__ import annotations
 
+from .constants import OIDN_ALBEDO, OIDN_NORMAL
+
 #: what the ``albedo`` layer holds (the render record's ``albedo``): 1 Mitsuba's ``eval_diffuse_reflectance``;
 #: 2 that where the BSDF has a diffuse lobe, else the first bounce's BSDF-sample weight (times eta² where it
 #: refracts), clamped to [0, 1]
@@ -58,8 +60,8 @@ DENOISING_REVISION = 1
 CHASE_BOUNCES = 4
 
 #: first-moment AOVs (the colour itself is the film's R, G, B)
-MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1), ("denoisingAlbedo", 3),
-           ("denoisingNormal", 3))
+MOMENT1 = (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1), (OIDN_ALBEDO, 3),
+           (OIDN_NORMAL, 3))
 #: second moments of these layers are written as ``<layer>_m2``
 MOMENT2 = (("color", 3), ("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1))
 
@@ -249,7 +251,7 @@ def register() -> str:
         @staticmethod
         def _aovs(L, L_d, albedo, normal, depth, d_albedo, d_normal) -> list:
             layers = {"color": L, "diffuse": L_d, "specular": L - L_d, "albedo": albedo, "normal": normal,
-                      "denoisingAlbedo": d_albedo, "denoisingNormal": d_normal}
+                      OIDN_ALBEDO: d_albedo, OIDN_NORMAL: d_normal}
             aovs = []
             for name, _ in MOMENT1:
                 if name == "depth":

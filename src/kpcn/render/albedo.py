@@ -28,6 +28,7 @@ from __future__ import annotations
 import os
 from typing import Any, Iterable, Mapping
 
+from ..constants import OIDN_ALBEDO, OIDN_NORMAL
 from ..integrator import ALBEDO_REVISION, DENOISING_REVISION, NORMAL_REVISION
 from ..io import Frame, read_exr, write_exr
 from .frame import render_frame
@@ -36,7 +37,7 @@ __all__ = ["ALBEDO_REVISION", "DENOISING_REVISION", "NORMAL_REVISION", "outdated
 
 #: the layers each first-hit revision covers
 FIRST_HIT_LAYERS = {"albedo": ("albedo", "albedoVariance"), "normal": ("normal", "normalVariance"),
-                    "denoising": ("denoisingAlbedo", "denoisingNormal")}
+                    "denoising": (OIDN_ALBEDO, OIDN_NORMAL)}
 #: per kind: the header key, the revision the integrator writes, the revision of a header without the key (a
 #: frame from before the denoising guides has none: 0)
 _HEADER = {"albedo": ("albedoRevision", ALBEDO_REVISION, 1), "normal": ("normalRevision", NORMAL_REVISION, 1),
@@ -58,7 +59,8 @@ def update_first_hit(path: str | os.PathLike, scene: Any, spp: int, seed: int, *
     ``meta``: header attributes to set as well (e.g. an updated render record). Returns the updated frame."""
     which = [w for w in FIRST_HIT_LAYERS if w in set(which)]
     names = [n for w in which for n in FIRST_HIT_LAYERS[w]]
-    old = read_exr(path, require=[n for w in which if w != "denoising" for n in FIRST_HIT_LAYERS[w]])
+    # a kind a frame can be without (revision 0 where its header has no key) is added, not required
+    old = read_exr(path, require=[n for w in which if _HEADER[w][2] for n in FIRST_HIT_LAYERS[w]])
     new = render_frame(scene, spp, seed, resolution, role=role, pass_spp=pass_spp, loaded=loaded, albedo_only=True)
     if new.shape != old.shape:
         raise ValueError(f"{path}: the frame is {old.shape[1]}x{old.shape[0]} but the scene renders "
