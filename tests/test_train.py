@@ -108,11 +108,11 @@ def test_torchrun_two_processes_end_with_identical_weights(tiny_dataset, tmp_pat
 
 def test_onecycle_schedule_and_augmentation_resume_exactly(tiny_dataset, tmp_path):
     """The rate is a function of the step and the transforms of (seed, step), exposures and patches mixed across
-    spp included: a resumed run repeats the losses."""
+    spp included: a resumed run repeats the losses (its Adam in two groups by ``train.lr_mult``)."""
     from kpcn.schedule import lr_at
 
     kw = dict(stage1_steps=4, stage2_steps=3, schedule="onecycle", augment=True, loss="l1_msssim",
-              exposure_augment=0.5, exposure_range=(0.03, 1.0))
+              exposure_augment=0.5, exposure_range=(0.03, 1.0), lr_mult={"*.bias": 5.0})
 
     def cfg(name, **over):
         c = tiny_cfg(tiny_dataset, tmp_path, name=name, **{**kw, **over})
@@ -532,7 +532,8 @@ def test_init_extend_adds_band_gains_before_a_heads_later_rows(tiny_dataset, tmp
 def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     """``deep_blocks`` added to a trained U-Net with ``train.init_extend``: the model denoises a real render as the
     file does (each block's second conv starts at zero); the blocks are live (the loss has a gradient on that
-    zero conv), a block that is not the identity changes the output, and ``train_only`` can train them alone."""
+    zero conv), a block that is not the identity changes the output, ``train_only`` can train them alone, and
+    ``train.lr_mult`` at their own rate."""
     from kpcn.config import ConfigError
     from kpcn.inference import load_model
 
@@ -559,6 +560,41 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     before = plain.state_dict()
     assert all(torch.equal(trained[k], v) for k, v in before.items())
     assert float(trained["diffuse.deep.0.conv2.weight"].abs().max()) > 0
+    # train.lr_mult instead: the blocks at 1e10 times a rate of 1e-12 that leaves everything else where it was
+    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "d", dict(deep_blocks=1), init=src, init_extend=True, lr=1e-12,
+                         lr_mult={"*.deep.*": 1e10}), progress=False)
+    trained = load_model(str(tmp_path / "d" / "model.safetensors"), device="cpu").state_dict()
+    assert all(float((trained[k] - v).abs().max()) < 1e-9 for k, v in before.items())
+    assert float(trained["diffuse.deep.0.conv2.weight"].abs().max()) > 1e-4
+    with pytest.raises(ConfigError, match="lr_mult: '\\*.nothing.\\*' matches no trained parameter"):
+        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "e", {}, init=src, lr_mult={"*.nothing.*": 2.0}), progress=False)
+
+
+def test_lr_mult_keeps_each_groups_factor_through_the_schedule():
+    """``train.lr_mult``: every trained parameter in exactly one Adam group, those the first matching glob names at
+    the schedule's rate times its factor at every step (warm-up, peak, decay); a frozen parameter in none; a bad
+    factor is refused when the config is read."""
+    from kpcn.config import ConfigError
+    from kpcn.models import create_model
+    from kpcn.train_steps import _make_optimizer, set_lr
+
+    model = create_model("unet_kpcn", stem="half", kernel_scales=2, widths=[8, 12], summary_channels=4)
+    model.specular.enc[0][0].weight.requires_grad_(False)
+    cfg = load_config(RunConfig, None, ["train.stage1_steps=0", "train.stage2_steps=100", "train.schedule=onecycle",
+                                        "train.lr=1e-3"])
+    cfg.train.lr_mult = {"*.head.*": 10, "diffuse.*": 3}  # the first glob wins for diffuse.head
+    opt = _make_optimizer(model, cfg.train.lr, cfg.train.lr_mult)
+    factor = {id(p): g["lr_mult"] for g in opt.param_groups for p in g["params"]}
+    trained = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
+    assert sum(len(g["params"]) for g in opt.param_groups) == len(trained) == len(factor)
+    for n, p in trained:
+        assert factor[id(p)] == (10 if ".head." in n else 3 if n.startswith("diffuse.") else 1), n
+    for step in (0, 3, 50, 99):
+        lr = set_lr(opt, step, cfg)
+        assert lr > 0 and all(g["lr"] == pytest.approx(lr * g["lr_mult"]) for g in opt.param_groups)
+    for bad in ('{"*.head.*": 0}', '{"*.head.*": .nan}', '{"": 2}', '{"*.head.*": true}'):
+        with pytest.raises(ConfigError, match="train.lr_mult"):
+            load_config(RunConfig, None, [f"train.lr_mult={bad}"])
 
 
 def test_init_resizes_unet_kernels_from_their_centre_taps(tiny_dataset, tmp_path, render):

@@ -212,10 +212,10 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     _agree(prepare_folder)
 
     stage2_lr = cfg.train.stage2_lr or cfg.train.lr
-    optimizer = _make_optimizer(model, cfg.train.lr)
+    optimizer = _make_optimizer(model, cfg.train.lr, cfg.train.lr_mult)
     if state:
         if state.get("stage", 1) == 2:  # the optimiser in the file is the fine-tuning one
-            optimizer = _make_optimizer(model, stage2_lr)
+            optimizer = _make_optimizer(model, stage2_lr, cfg.train.lr_mult)
         _restore_optimizer(optimizer, state, source)
         if d.main:
             log.info("resumed from %s at step %d", source, step)
@@ -265,7 +265,7 @@ def train(cfg: RunConfig, resume: bool = False, progress: bool = True, trust_pic
     for step, batch in batches(ds, cfg, d, step):
         stage = stage_of(step, cfg)
         if stage != current_stage:  # entering stage 2: fresh Adam at the fine-tuning rate
-            optimizer = _make_optimizer(model, stage2_lr)
+            optimizer = _make_optimizer(model, stage2_lr, cfg.train.lr_mult)
             current_stage = stage
         batch = {k: v.to(d.device, non_blocking=True) for k, v in batch.items()}
         if cfg.train.augment:  # the same transforms for the same (seed, step, rank): resumable

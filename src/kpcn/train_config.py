@@ -181,6 +181,10 @@ class TrainConfig:
     #: sank far below 0 has no gradient left to come back with (the specular branch's level 1 in every shipped
     #: U-Net: logits -25 to -60, so its 1/4 and 1/8 levels were never used)
     init_reopen: list[str] = field(default_factory=list)
+    #: learning-rate factors by parameter name, ``{glob: factor}`` (the first matching glob counts; others train at
+    #: the schedule's rate): e.g. ``{"*.fullres.*": 20}`` for a part added at zero to a trained file, which Adam
+    #: would move by about the rate a step, and so hardly at a fine-tune's (docs/measured.md, forty-eighth session)
+    lr_mult: dict = field(default_factory=dict)
     #: parameter names to train, as glob patterns (``fnmatch``; e.g. ``"specular.head*"``): every other parameter is
     #: frozen (no gradient, left out of the optimiser, and the frozen part of the network runs without autograd).
     #: Empty: all of them. A pattern that names no parameter is refused
@@ -243,6 +247,9 @@ class TrainConfig:
             if not (isinstance(entry, str) and re.fullmatch(r"[A-Za-z_]\w*:\d+", entry)):
                 raise ConfigError(f"train.init_reopen: entries are '<branch>:<level>' (e.g. 'specular:1'), "
                                   f"got {entry!r}")
+        if not all(isinstance(k, str) and k and isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and math.isfinite(v) and v > 0 for k, v in self.lr_mult.items()):
+            raise ConfigError(f"train.lr_mult: expected {{parameter-name pattern: factor > 0}}, got {self.lr_mult!r}")
         if not all(isinstance(p, str) and p for p in self.train_only):
             raise ConfigError(f"train.train_only: expected a list of parameter-name patterns, got {self.train_only!r}")
         if self.distill_min_spp is not None:

@@ -1,6 +1,8 @@
 """One training step's parts: the model, the batch of each step, the two stages' losses, and validation."""
 from __future__ import annotations
 
+from fnmatch import fnmatchcase
+
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
@@ -40,7 +42,7 @@ def set_lr(optimizer, step: int, cfg: RunConfig) -> float:
     else:
         lr = lr_at(step, t.stage1_steps, t.stage2_steps, t.stage2_lr or t.lr, t.schedule, t.warmup)
     for group in optimizer.param_groups:
-        group["lr"] = lr
+        group["lr"] = lr * group.get("lr_mult", 1.0)
     return lr
 
 
@@ -231,9 +233,28 @@ def _set_seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _make_optimizer(model, lr: float):
-    """Adam over the parameters that are trained (``train.train_only`` freezes the others)."""
-    return torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
+def _make_optimizer(model, lr: float, lr_mult: dict[str, float] | None = None):
+    """Adam over the parameters that are trained (``train.train_only`` freezes the others); with ``lr_mult``
+    (``train.lr_mult``: parameter-name glob -> factor, the first match counts) a parameter group per factor, each
+    at ``lr`` times its factor (:func:`set_lr` keeps it so)."""
+    lr_mult = lr_mult or {}
+    groups: dict[float, list] = {}
+    used = set()
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        name = name.removeprefix("module.")  # a DistributedDataParallel wrapper's
+        pat = next((k for k in lr_mult if fnmatchcase(name, k)), None)
+        used.add(pat)
+        groups.setdefault(float(lr_mult[pat]) if pat else 1.0, []).append(p)
+    unused = [k for k in lr_mult if k not in used]
+    if unused:
+        from .config import ConfigError
+
+        raise ConfigError(f"train.lr_mult: {', '.join(map(repr, unused))} matches no trained parameter")
+    if not lr_mult:
+        return torch.optim.Adam(groups.get(1.0, []), lr=lr)
+    return torch.optim.Adam([{"params": ps, "lr": lr * m, "lr_mult": m} for m, ps in groups.items()], lr=lr)
 
 
 def _tonemap_t(x: torch.Tensor) -> torch.Tensor:
