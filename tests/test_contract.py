@@ -61,8 +61,7 @@ OPTION_VARIANTS = {"kpcn": [{"input_spec": "color_albedo_normal_noise", "precisi
                                   "edge_upsample": 0.5},
                                  {"kernel_scales": 3, "edge_upsample": 0.3},
                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "albedo_kernel": 3,
-                                  "edge_upsample": 0.5, "fullres_channels": 4},
-                                 {"stem": "half", "kernel_scales": 3, "band_gain": True, "stem_detail": 4}]}
+                                  "edge_upsample": 0.5, "fullres_channels": 4}]}
 
 
 #: CPU-sized settings for models whose defaults are paper-sized (a new model runs with its defaults)

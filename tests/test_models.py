@@ -469,26 +469,6 @@ def test_unet_coarse_kernel_and_deep_blocks_settings():
         create_model("unet_kpcn", deep_blocks=-1)
 
 
-def test_unet_stem_detail_settings():
-    """``stem_detail``: K channels of the 2x2 blocks' detail into each branch's first level, the cost counted by hand
-    (per branch, per full-resolution pixel: the 2x2 stride-2 conv's ``K · C`` and its 3x3 into the first level's
-    ``9 · widths[0] · K / 4``), no wider reach (it sees the 2x2 block the average pools), refused without ``stem:
-    half`` or below 0."""
-    from kpcn.models.cost import macs_per_pixel
-
-    kw = dict(stem="half", kernel_scales=3, widths=[8, 12, 16], specular_widths=[6, 8, 12], summary_channels=4)
-    base, sd = create_model("unet_kpcn", **kw), create_model("unet_kpcn", **kw, stem_detail=4)
-    c = base.input_spec.channels
-    assert sd.diffuse.stem_detail.pool.in_channels == c and sd.specular.stem_detail.mix.out_channels == 6
-    hand = sum(4 * c + 9 * w0 * 4 / 4 for w0 in (8, 6))
-    assert macs_per_pixel(sd) - macs_per_pixel(base) == pytest.approx(hand)
-    assert sd.receptive_radius == base.receptive_radius
-    with pytest.raises(ValueError, match="stem_detail must be an integer >= 0 and needs stem: half"):
-        create_model("unet_kpcn", stem_detail=4)
-    with pytest.raises(ValueError, match="stem_detail must be an integer >= 0"):
-        create_model("unet_kpcn", stem="half", kernel_scales=2, stem_detail=-1)
-
-
 def test_band_gain_scales_the_high_band_of_each_blended_level():
     """``combine_levels`` with gains: β = 1 is the blend without them; β = 0 at the finest level leaves only the
     blend of its low band with the coarse result (so the output is smooth at the 2x2 scale: it equals

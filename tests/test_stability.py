@@ -68,8 +68,7 @@ OPTION_VARIANTS = {"unet_kpcn": [{"kernel_scales": 3}, {"stem": "half", "kernel_
                                   {"stem": "half", "kernel_scales": 3, "specular_widths": [4, 6, 8, 12]},
                                   {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_pool": True},
                                   {"stem": "half", "kernel_scales": 3, "band_gain": True, "radiance_mix": True},
-                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "fullres_channels": 4},
-                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "stem_detail": 4}],
+                                  {"stem": "half", "kernel_scales": 3, "band_gain": True, "fullres_channels": 4}],
                    # kernels weighted by albedo ratios (not convex in the colour)
                    "kpcn": [{"input_spec": "color_albedo_normal_noise", "demodulate": True, "out_init_gain": 5.0}]}
 

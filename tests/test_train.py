@@ -570,48 +570,6 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
         train(_tiny_unet_cfg(tiny_dataset, tmp_path, "e", {}, init=src, lr_mult={"*.nothing.*": 2.0}), progress=False)
 
 
-def test_init_extend_adds_a_unet_stem_detail(tiny_dataset, tmp_path, render):
-    """``stem_detail`` added to a trained U-Net with ``train.init_extend``: its 3x3 starts at zero, so the model
-    denoises a real render as the file does; the 3x3 has a gradient, and once it is not zero the first level changes
-    with what lies inside a 2x2 block, which the blocks' average alone cannot show. ``train.lr_mult`` trains the
-    detail at its own rate: with the rest at a rate that cannot move them, only the detail's weights move."""
-    from kpcn.config import ConfigError
-    from kpcn.inference import load_model
-
-    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "a", {}), progress=False)
-    src = str(tmp_path / "a" / "model.safetensors")
-    with pytest.raises(ConfigError, match="stem_detail"):  # not without saying so
-        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(stem_detail=4), init=src), progress=False)
-    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "b", dict(stem_detail=4), init=src, init_extend=True, lr=1e-12,
-                         stage1_steps=1), progress=False)
-    plain, sd = load_model(src, device="cpu"), load_model(str(tmp_path / "b" / "model.safetensors"), device="cpu")
-    assert plain.diffuse.stem_detail is None and sd.diffuse.stem_detail.pool.out_channels == 4
-    mix = sd.diffuse.stem_detail.mix
-    assert float(mix.weight.abs().max()) < 1e-9  # zero, moved by one step at lr 1e-12 at most
-    x = _denoises_alike(plain, sd, render)
-    mix.weight.requires_grad_(True)
-    sd.diffuse(x).square().mean().backward()
-    assert mix.weight.grad.abs().max() > 0
-    # each 2x2 block's rows swapped (rows 0 <-> 1 of every pair): the blocks' averages, all the plain stem sees, stay
-    swapped = x.clone()
-    swapped[..., 0::2, :], swapped[..., 1::2, :] = x[..., 1::2, :], x[..., 0::2, :]
-    with torch.no_grad():
-        mix.weight.normal_(0.0, 0.1)
-        assert (sd.diffuse.encode(x)[0] - sd.diffuse.encode(swapped)[0]).abs().max() > 1e-3
-        mix.weight.zero_()
-        torch.testing.assert_close(sd.diffuse.encode(x)[0], sd.diffuse.encode(swapped)[0], rtol=0, atol=1e-5)
-    # train.lr_mult: the detail at 1e10 times a rate of 1e-12, the rest at 1e-12
-    train(_tiny_unet_cfg(tiny_dataset, tmp_path, "c", dict(stem_detail=4), init=src, init_extend=True, lr=1e-12,
-                         lr_mult={"*.stem_detail.*": 1e10}), progress=False)
-    trained = load_model(str(tmp_path / "c" / "model.safetensors"), device="cpu").state_dict()
-    before = plain.state_dict()
-    assert all(float((trained[k] - v).abs().max()) < 1e-9 for k, v in before.items())
-    assert float(trained["diffuse.stem_detail.mix.weight"].abs().max()) > 1e-4
-    with pytest.raises(ConfigError, match="lr_mult: '\\*.nothing.\\*' matches no trained parameter"):
-        train(_tiny_unet_cfg(tiny_dataset, tmp_path, "d", {}, init=src, lr_mult={"*.nothing.*": 2.0}),
-              progress=False)
-
-
 def test_lr_mult_keeps_each_groups_factor_through_the_schedule():
     """``train.lr_mult``: every trained parameter in exactly one Adam group, those the first matching glob names at
     the schedule's rate times its factor at every step (warm-up, peak, decay); a frozen parameter in none; a bad

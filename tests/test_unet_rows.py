@@ -75,8 +75,7 @@ def _rel(a, b) -> float:
                                 {"edge_upsample": 0.5, "band_gain": True, "albedo_kernel": 3},
                                 {"edge_upsample": 0.3, "kernel_scales": 4, "radiance_pool": True},
                                 {"fullres_channels": 4, "edge_upsample": 0.5, "band_gain": True, "albedo_kernel": 3},
-                                {"fullres_channels": 6, "kernel_scales": 1, "guide_kernel": 3},
-                                {"stem_detail": 4, "edge_upsample": 0.5, "band_gain": True, "albedo_kernel": 3}],
+                                {"fullres_channels": 6, "kernel_scales": 1, "guide_kernel": 3}],
                          ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "default")
 @pytest.mark.parametrize("band", [32, 6])
 def test_row_bands_equal_the_whole_frame(frame, monkeypatch, kw, band):

@@ -42,7 +42,7 @@ def load_init(model: torch.nn.Module, cfg: RunConfig) -> str:
     extendable = {"input_spec", "in_channels", "precision_gate", "demodulate", "kernel_scales", "widths",
                   "guide_channels", "guide_kernel", "band_gain", "up_kernel", "albedo_kernel", "albedo_gate_gain",
                   "albedo_clamp", "specular_widths", "radiance_pool", "radiance_mix", "deep_blocks",
-                  "fullres_channels", "stem_detail"}
+                  "fullres_channels"}
     # settings that add no parameter (NO_WEIGHT_SETTINGS): a file trained without them starts one trained with them
     free = {"name", *NO_WEIGHT_SETTINGS} | (extendable if cfg.train.init_extend else set())
     if cfg.train.init_extend:  # U-Net kernels of another size start from the file's (_resize_kernels)
@@ -199,7 +199,7 @@ def _reopen_blends(model: torch.nn.Module, entries) -> None:
 
 
 #: what ``train.init_extend`` may add to a file: a coarser kernel level's head, a deep block, a full-resolution level
-ADDABLE = r"(^|\.)(heads\.\d+|deep\.\d+\.conv[12]|fullres\.\w+|stem_detail\.\w+)\.(weight|bias)$"
+ADDABLE = r"(^|\.)(heads\.\d+|deep\.\d+\.conv[12]|fullres\.\w+)\.(weight|bias)$"
 
 
 def _extend(state: dict, target: dict, path, groups: dict | None = None, source_groups: dict | None = None,
@@ -238,8 +238,7 @@ def _extend(state: dict, target: dict, path, groups: dict | None = None, source_
         if k not in state:
             if not (k.endswith(".gate") or re.search(ADDABLE, k)):
                 raise ConfigError(f"train.init_extend: {path} has no {k} (only a precision gate, a coarser "
-                                  f"kernel level, a deep block, a full-resolution level or a stem detail can be "
-                                  f"added)")
+                                  f"kernel level, a deep block or a full-resolution level can be added)")
             out[k] = t.detach().clone()
     groups, source_groups = groups or {}, source_groups or {}
     for k, v in state.items():

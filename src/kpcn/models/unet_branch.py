@@ -86,28 +86,6 @@ class FullResLevel(nn.Module):
         return self.out(f if f.dtype == torch.float32 or not torch.is_grad_enabled() else f.float()).float()
 
 
-class StemDetail(nn.Module):
-    """``UNetConfig.stem_detail``: what a 2×2 block holds beyond its average, for the first level of a ``stem: half``
-    U-Net. :meth:`reduce`: ``relu(pool(t))``, a 2×2 stride-2 conv of the transformed full-resolution features
-    ``(B, C, H, W)`` -> ``(B, K, H/2, W/2)``; :meth:`forward`: its 3×3 ``mix`` into the first conv's ``width``
-    channels, added to that conv's output before its ReLU. ``mix`` starts at zero: a detail path added to a trained
-    file leaves its output as it was (and, a module of its own, it can train at its own rate: ``train.lr_mult``)."""
-
-    def __init__(self, c_in: int, k: int, width: int) -> None:
-        super().__init__()
-        self.pool = nn.Conv2d(c_in, k, 2, stride=2)
-        self.mix = nn.Conv2d(k, width, 3, padding=1, bias=False)
-        nn.init.kaiming_normal_(self.pool.weight, nonlinearity="relu")
-        nn.init.zeros_(self.pool.bias)
-        nn.init.zeros_(self.mix.weight)
-
-    def reduce(self, t: torch.Tensor) -> torch.Tensor:
-        return relu_(self.pool(t))
-
-    def forward(self, d: torch.Tensor) -> torch.Tensor:
-        return self.mix(d)
-
-
 class UNetBranch(nn.Module):
     """One branch: ``(B, C, H, W)`` features -> ``(B, 3, H, W)`` filtered colour (channels 0..2).
 
@@ -124,8 +102,6 @@ class UNetBranch(nn.Module):
         self.enc = nn.ModuleList()
         for level, width in enumerate(w):
             self.enc.append(_convs(c_in if level == 0 else w[level - 1], width, cfg.convs_per_level))
-        #: UNetConfig.stem_detail: the 2x2 blocks' detail, added to the first level's first conv (None: off)
-        self.stem_detail = StemDetail(c_in, cfg.stem_detail, w[0]) if cfg.stem_detail else None
         #: UNetConfig.deep_blocks: residual blocks after the encoder's coarsest level
         self.deep = nn.ModuleList(DeepBlock(w[-1]) for _ in range(cfg.deep_blocks))
         s = cfg.summary_channels
@@ -209,9 +185,6 @@ class UNetBranch(nn.Module):
         off = cfg.offset
         if off:
             groups["guide"] = ((cfg.guide_channels,), (get_input_spec(cfg.input_spec).channels,))
-        if cfg.stem_detail:
-            groups["stem_detail.pool"] = ((cfg.stem_detail,), (get_input_spec(cfg.input_spec).channels,))
-            groups["stem_detail.mix"] = ((w[0],), (cfg.stem_detail,))
         groups["head"] = (None, (w[0], cfg.guide_channels) if off else (w[0],))
         if self.fullres is not None:
             f = cfg.fullres_channels
@@ -253,19 +226,14 @@ class UNetBranch(nn.Module):
 
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Encoder features of every level, finest first (input padded to the alignment)."""
-        detail = None
         if self.cfg.offset:  # pool the linear features, then transform them
-            x = self._pad(x)
-            h = transform_input(pool2(x), self.cfg.input_transform)
-            if self.stem_detail is not None:
-                detail = self.stem_detail.reduce(transform_input(x, self.cfg.input_transform))
+            h = transform_input(pool2(self._pad(x)), self.cfg.input_transform)
         else:
             h = self._pad(transform_input(x, self.cfg.input_transform))
-        return self.encode_from(h, detail)
+        return self.encode_from(h)
 
-    def encode_from(self, h: torch.Tensor, detail: torch.Tensor | None = None) -> list[torch.Tensor]:
-        """The encoder on the first level's input ``(B, C, H', W')`` (transformed, padded, pooled with ``stem: half``),
-        and with ``stem_detail`` the blocks' ``detail`` ``(B, K, H', W')`` (:meth:`StemDetail.reduce`).
+    def encode_from(self, h: torch.Tensor) -> list[torch.Tensor]:
+        """The encoder on the first level's input ``(B, C, H', W')`` (transformed, padded, pooled with ``stem: half``).
 
         Without autograd the levels run ``channels_last`` (on the CPU, oneDNN's convolutions take half
         the time in that layout: no reordering around each call).
@@ -277,13 +245,7 @@ class UNetBranch(nn.Module):
             for level, block in enumerate(self.enc):
                 if level:
                     h = pool2(h)
-                if level == 0 and self.stem_detail is not None:
-                    if detail is None:
-                        raise ValueError("UNetBranch.encode_from: this branch reads the 2x2 blocks' detail "
-                                         "(stem_detail): give it")
-                    h = block[1:](block[0](h) + self.stem_detail(detail.to(h.dtype)))
-                else:
-                    h = block(h)
+                h = block(h)
                 feats.append(h)
             for block in self.deep:
                 h = block(h)

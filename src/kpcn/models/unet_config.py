@@ -57,12 +57,6 @@ class UNetConfig:
             logits. The finest level alone places an edge only to its half-resolution pixel; this level combines
             it with the full-resolution guide through two nonlinearities and a 3×3 neighbourhood. Its output
             conv starts at zero, so ``train.init_extend`` adds it to a file without it at the file's output.
-        stem_detail: ``stem: half``: 0 (off) or ``K > 0``: the network's first level also sees ``K`` channels of
-            a learned 2×2 stride-2 convolution of the transformed full-resolution features (and a ReLU) beside
-            their 2×2 average, through a 3×3 added to its first conv (:class:`~kpcn.models.unet_branch.StemDetail`).
-            The average keeps nothing of where, inside its block, an edge, a bump or a lone bright sample lies;
-            this sees it, for ``K · (C + 9 · widths[0] / 4)`` multiply-adds per pixel and branch. The 3×3 starts
-            at zero, so ``train.init_extend`` adds it to a file without it at the file's output.
         band_gain: ``kernel_scales > 1``: every level that blends in a coarser one also predicts a per-pixel
             gain ``β = 2·sigmoid(z)`` in ``[0, 2]`` of its own high band, ``o_l = f_l + α·U(o_{l+1} - D f_l)
             - (1 - β)·(f_l - U D f_l)``: the band a 2×2 pool drops, which the coarse-to-fine blend keeps whole
@@ -148,7 +142,6 @@ class UNetConfig:
     guide_channels: int = 8
     guide_kernel: int = 1
     fullres_channels: int = 0
-    stem_detail: int = 0
     band_gain: bool = False
     up_kernel: int = 3
     albedo_kernel: int = 0
@@ -202,10 +195,6 @@ class UNetConfig:
                 or self.fullres_channels < 0 or (self.fullres_channels and self.stem != "half"):
             raise ValueError(f"UNetConfig.fullres_channels must be an integer >= 0 and needs stem: half, got "
                              f"{self.fullres_channels!r} with stem {self.stem!r}")
-        if isinstance(self.stem_detail, bool) or not isinstance(self.stem_detail, int) \
-                or self.stem_detail < 0 or (self.stem_detail and self.stem != "half"):
-            raise ValueError(f"UNetConfig.stem_detail must be an integer >= 0 and needs stem: half, got "
-                             f"{self.stem_detail!r} with stem {self.stem!r}")
         if self.up_kernel not in (1, 3) or isinstance(self.up_kernel, bool):
             raise ValueError(f"UNetConfig.up_kernel must be 1 or 3, got {self.up_kernel!r}")
         if isinstance(self.albedo_kernel, bool) or self.albedo_kernel < 0 or \

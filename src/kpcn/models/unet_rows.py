@@ -116,9 +116,6 @@ class RowStream:
         # in the conv stack's dtype (bfloat16: half the memory; its first conv would round them to it all the same)
         self._pooled = torch.empty(1, c, hp // 2, wp // 2, memory_format=torch.channels_last, device=device,
                                    dtype=branch.compute_dtype or dtype)
-        sd = branch.stem_detail
-        self._detail = None if sd is None else torch.empty(1, sd.pool.out_channels, hp // 2, wp // 2, device=device,
-                                                           dtype=dtype, memory_format=torch.channels_last)
         # the guide in the conv stack's dtype too (bfloat16: half the memory, a quarter GB per branch at 3840x2160)
         self._guide = torch.empty(1, cfg.guide_channels, hp, wp, device=device, dtype=branch.compute_dtype or dtype)
         self._full: dict[str, torch.Tensor] = {}  # each signal at full resolution
@@ -175,13 +172,7 @@ class RowStream:
         kind = self.cfg.input_transform
         pooled = self._pooled[..., r0 // 2:(r0 + n) // 2, :]
         g = self.branch.guide if self.cfg.guide_kernel == 1 else None  # a wider guide trails the bands (_feed_guide)
-        sd = self.branch.stem_detail
-        if sd is not None:  # UNetConfig.stem_detail: each 2x2 block's detail beside its average
-            t = transform_input(x, kind)
-            self._feed_guide(r0, t)
-            pooled.copy_(transform_input(pool2(x), kind))
-            self._detail[..., r0 // 2:(r0 + n) // 2, :] = sd.reduce(t)
-        elif g is None or not feed_native(x, kind, g.weight, g.bias, self._guide[..., r0:r0 + n, :], pooled):
+        if g is None or not feed_native(x, kind, g.weight, g.bias, self._guide[..., r0:r0 + n, :], pooled):
             self._feed_guide(r0, transform_input(x, kind))
             pooled.copy_(transform_input(pool2(x), kind))
         for k, v in signals.items():
@@ -231,8 +222,7 @@ class RowStream:
         if r:  # the last r guide rows read r replicates of the frame's last row below it
             self._guide_rows(torch.cat([self._ctx, self._ctx[..., -1:, :].expand(-1, -1, r, -1)], dim=-2))
             self._ctx = None
-        detail, self._detail = self._detail, None
-        h, decoded = net.decode(net.encode_from(self._release_pooled(), detail), summary)
+        h, decoded = net.decode(net.encode_from(self._release_pooled()), summary)
         # the guided head's half-resolution part; in reduced precision kept as the product in that dtype (half the
         # memory), converted and given its bias a band at a time in rows(): the same values
         head = net.head
