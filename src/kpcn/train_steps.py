@@ -8,6 +8,7 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from .augment import Augmentation, augment_patch, undo_flips
+from .config import ConfigError
 from .data import FrameDataset, PatchDataset, model_inputs as net_inputs
 from .distributed import Dist
 from .losses import create_loss
@@ -249,9 +250,8 @@ def _make_optimizer(model, lr: float, lr_mult: dict[str, float] | None = None):
         groups.setdefault(float(lr_mult[pat]) if pat else 1.0, []).append(p)
     unused = [k for k in lr_mult if k not in used]
     if unused:
-        from .config import ConfigError
-
-        raise ConfigError(f"train.lr_mult: {', '.join(map(repr, unused))} matches no trained parameter")
+        raise ConfigError(f"train.lr_mult: {', '.join(map(repr, unused))} matches no trained parameter (none, or "
+                          f"only ones an earlier pattern takes)")
     if not lr_mult:
         return torch.optim.Adam(groups.get(1.0, []), lr=lr)
     return torch.optim.Adam([{"params": ps, "lr": lr * m, "lr_mult": m} for m, ps in groups.items()], lr=lr)
