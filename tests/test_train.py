@@ -566,7 +566,7 @@ def test_init_extend_adds_unet_deep_blocks(tiny_dataset, tmp_path, render):
     trained = load_model(str(tmp_path / "d" / "model.safetensors"), device="cpu").state_dict()
     assert all(float((trained[k] - v).abs().max()) < 1e-9 for k, v in before.items())
     assert float(trained["diffuse.deep.0.conv2.weight"].abs().max()) > 1e-4
-    with pytest.raises(ConfigError, match="lr_mult: '\\*.nothing.\\*' matches no trained parameter"):
+    with pytest.raises(ConfigError, match="lr_mult: '\\*.nothing.\\*' name no parameter of the model that is trained"):
         train(_tiny_unet_cfg(tiny_dataset, tmp_path, "e", {}, init=src, lr_mult={"*.nothing.*": 2.0}), progress=False)
 
 

@@ -342,6 +342,13 @@ def _split_rows(pattern: str) -> tuple[str, slice | None]:
     return glob, slice(int(a) if a else None, int(b) if b else None)
 
 
+def unmatched_patterns(option: str, unused, names, why: str = "") -> ConfigError:
+    """The error for parameter-name patterns of ``option`` that name none of the model's parameters ``names`` (a few
+    of them listed); ``why``: what else such a pattern may have missed."""
+    return ConfigError(f"{option}: {', '.join(map(repr, unused))} name no parameter of the model{why} (it has "
+                       f"{len(names)}, e.g. {', '.join(names[:3])}, ..., {names[-1]})")
+
+
 def freeze_except(model: torch.nn.Module, patterns) -> int:
     """``train.train_only``: freeze every parameter of ``model`` whose name matches none of the glob ``patterns``
     (``requires_grad`` False; nothing when ``patterns`` is empty) and return how many parameter values stay trainable.
@@ -357,8 +364,7 @@ def freeze_except(model: torch.nn.Module, patterns) -> int:
     parsed = [_split_rows(pat) for pat in patterns]
     unused = [pat for pat, (glob, _) in zip(patterns, parsed) if not any(fnmatch.fnmatchcase(n, glob) for n in names)]
     if unused:
-        raise ConfigError(f"train.train_only: {', '.join(map(repr, unused))} name no parameter of the model (it has "
-                          f"{len(names)}, e.g. {', '.join(names[:3])}, ..., {names[-1]})")
+        raise unmatched_patterns("train.train_only", unused, names)
     kept = 0
     for n, p in model.named_parameters():
         rows = [r for glob, r in parsed if fnmatch.fnmatchcase(n, glob)]

@@ -8,7 +8,6 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from .augment import Augmentation, augment_patch, undo_flips
-from .config import ConfigError
 from .data import FrameDataset, PatchDataset, model_inputs as net_inputs
 from .distributed import Dist
 from .losses import create_loss
@@ -17,6 +16,7 @@ from .models import create_model
 from .ops.regression import residual_regression
 from .schedule import lr_at
 from .train_config import RunConfig
+from .train_init import unmatched_patterns
 
 __all__ = ["build_model", "stage_of", "set_lr", "model_inputs", "build_teacher", "distill_targets", "teacher_outputs",
            "with_detail", "compute_loss", "batches", "validate"]
@@ -240,20 +240,18 @@ def _make_optimizer(model, lr: float, lr_mult: dict[str, float] | None = None):
     at ``lr`` times its factor (:func:`set_lr` keeps it so)."""
     lr_mult = lr_mult or {}
     groups: dict[float, list] = {}
-    used = set()
+    used, names = set(), []
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
         name = name.removeprefix("module.")  # a DistributedDataParallel wrapper's
+        names.append(name)
         pat = next((k for k in lr_mult if fnmatchcase(name, k)), None)
         used.add(pat)
         groups.setdefault(float(lr_mult[pat]) if pat else 1.0, []).append(p)
     unused = [k for k in lr_mult if k not in used]
     if unused:
-        raise ConfigError(f"train.lr_mult: {', '.join(map(repr, unused))} matches no trained parameter (none, or "
-                          f"only ones an earlier pattern takes)")
-    if not lr_mult:
-        return torch.optim.Adam(groups.get(1.0, []), lr=lr)
+        raise unmatched_patterns("train.lr_mult", unused, names, " that is trained and no earlier pattern takes")
     return torch.optim.Adam([{"params": ps, "lr": lr * m, "lr_mult": m} for m, ps in groups.items()], lr=lr)
 
 
