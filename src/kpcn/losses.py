@@ -178,13 +178,11 @@ def coarse_log_l1(x: torch.Tensor, y: torch.Tensor, pools=(4, 16)) -> torch.Tens
 
 @register_loss("log_msssim")
 def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coarse_weight: float = 0.0,
-               coarse_pools=(4, 16), tone_l2_weight: float = 0.0, relmse_weight: float = 0.0,
-               psnr_weight: float = 0.0, psnr_eps: float = 1e-5) -> torch.Tensor:
+               coarse_pools=(4, 16), tone_l2_weight: float = 0.0, relmse_weight: float = 0.0) -> torch.Tensor:
     """The log loss + ``ssim_weight`` · (1 − MS-SSIM of the tone-mapped colours), ``+ coarse_weight`` ·
     :func:`coarse_log_l1`, ``+ tone_l2_weight`` · the mean squared error of the tone-mapped colours (what the
     report's PSNR measures), ``+ relmse_weight`` · :func:`relmse` (what the report's relMSE measures: dark pixels
-    weigh most), ``+ psnr_weight`` · :func:`log_tone_mse` (the report's PSNR as it is averaged: per image, in
-    log). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
+    weigh most). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
     input can stand for is skewed (a glossy highlight a few samples missed); a squared error's optimum is the mean."""
     def tone(t):  # kpcn.metrics.tonemap; the offset keeps the gamma's slope finite at 0
         t = t.clamp_min(0)
@@ -198,19 +196,7 @@ def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coars
         loss = loss + tone_l2_weight * (tx - ty).square().mean()
     if relmse_weight:
         loss = loss + relmse_weight * relmse(x, y)
-    if psnr_weight:
-        loss = loss + psnr_weight * log_tone_mse(tx, ty, psnr_eps)
     return loss
-
-
-def log_tone_mse(tx: torch.Tensor, ty: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
-    """``mean_b log(MSE_b + eps)`` of tone-mapped ``(B, C, H, W)`` images: minus the mean PSNR of the batch's
-    images, over ``10 / ln 10``. A mean of the images' PSNR, as the report averages it over scenes, weighs
-    each image's squared error by ``1 / MSE_b``: the same relative gain counts alike on an easy image and a hard
-    one, where one squared error over the batch (``tone_l2_weight``) is led by the images with the most error.
-    ``eps`` bounds the weight of an image with almost none (1e-5: 50 dB)."""
-    mse = (tx - ty).square().flatten(1).mean(1)
-    return torch.log(mse + eps).mean()
 
 
 @register_loss("l1_msssim")
