@@ -976,3 +976,25 @@ def test_distill_min_spp_teaches_the_init_files_outputs_on_high_spp_patches(tiny
         assert torch.equal(got[f"y_{k}"][~hi], batch[f"y_{k}"][~hi])
     with pytest.raises(ConfigError, match="needs train.init"):
         train(tiny_cfg(tiny_dataset, tmp_path, name="d", distill_min_spp=8), progress=False)
+
+
+def test_resume_keeps_the_configs_lr_mult_factors():
+    """A resume restores Adam's moments from the checkpoint but each group's ``train.lr_mult`` factor from the config
+    it runs with (a changed factor is one of the settings a resume may change; Adam's ``load_state_dict`` alone puts
+    the file's back)."""
+    from kpcn.checkpoint import rng_state
+    from kpcn.models import create_model
+    from kpcn.runs import _restore_optimizer
+    from kpcn.train_steps import _make_optimizer
+
+    model = create_model("unet_kpcn", stem="half", kernel_scales=2, widths=[8, 12], summary_channels=4)
+    saved = _make_optimizer(model, 1e-3, {"*.head.*": 10})
+    for p in model.parameters():
+        p.grad = torch.ones_like(p)
+    saved.step()
+    resumed = _make_optimizer(model, 1e-3, {"*.head.*": 3})
+    _restore_optimizer(resumed, {"optimizer": saved.state_dict(), "rng": rng_state()}, "ckpt")
+    assert sorted(g["lr_mult"] for g in resumed.param_groups) == [1.0, 3]
+    head = next(p for n, p in model.named_parameters() if ".head." in n)
+    assert torch.equal(resumed.state[head]["exp_avg"], saved.state[head]["exp_avg"])
+    assert float(resumed.state[head]["step"]) == 1

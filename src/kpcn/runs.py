@@ -182,9 +182,16 @@ def _check_resumable(cfg: RunConfig, model, state: dict, source: Path, log_chang
 
 
 def _restore_optimizer(optimizer, state: dict, source: Path) -> None:
+    """The file's optimiser moments and RNG state into ``optimizer``, built from the run's config: its groups' rate
+    factors (``train.lr_mult``) stay the config's, which a resume may have changed (``load_state_dict`` would put
+    back the file's)."""
+    factors = [g.get("lr_mult") for g in optimizer.param_groups]
     try:
         if state["optimizer"] is not None:
             optimizer.load_state_dict(state["optimizer"])
+            for group, factor in zip(optimizer.param_groups, factors):
+                if factor is not None:
+                    group["lr_mult"] = factor
         set_rng_state(state["rng"])
     except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as exc:
         raise CheckpointError(f"{source}: its optimiser or RNG state cannot be restored "
