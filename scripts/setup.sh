@@ -40,9 +40,11 @@ if [ ! -x .venv/bin/python ]; then
 fi
 # torch is pinned to 2.13.0, whose CPU wheel lies on this machine's disk; a looser
 # pin would pull a CUDA build of several GB.
-.venv/bin/python -m pip install -q --upgrade pip >/dev/null
+# --no-cache-dir: a fresh machine gains nothing from pip's cache, and keeping a second copy of every downloaded
+# wheel (bpy alone ~375 MB) has run a nearly full disk out of space before the install finished
+.venv/bin/python -m pip install -q --no-cache-dir --upgrade pip >/dev/null
 # the `blender` extra (bpy 5.0.1, ~375 MB download) lets the Cycles tests run; bpy pins numpy < 2
-.venv/bin/python -m pip install -q -e ".[dev,blender]"
+.venv/bin/python -m pip install -q --no-cache-dir -e ".[dev,blender]"
 echo "[setup] ok: $(.venv/bin/python -c 'import torch, mitsuba, bpy; print("torch", torch.__version__, "mitsuba", mitsuba.__version__, "bpy", bpy.app.version_string)')"
 # the native kernels (kpcn/ops/native), compiled for this CPU now rather than on the first denoise; without a C
 # compiler the PyTorch paths run instead, and this line says so
