@@ -606,6 +606,21 @@ def test_oidn_wrapper_handles_pyoidn_input_rules():
         oidn_denoise(color, albedo[:8])
 
 
+@pytest.mark.skipif(not HAS_OIDN, reason="pyoidn not installed")
+def test_oidn_high_runs_the_balanced_network_for_noisy_guides(report):
+    """The report's OIDN multiply-adds (OIDN_MACS_PER_PX, the standard RT U-Net) rest on this: for HDR colour with
+    noisy albedo and normal (cleanAux off, as the report calls it) quality "high" gives what "balanced" gives, bit for
+    bit, on a rendered frame, while "fast" (another network) does not. A pyoidn that changes it fails here."""
+    from kpcn.baselines import oidn_guides
+
+    cfg, _ = report
+    frame = read_exr(sorted(Path(cfg.out).rglob("input_4spp*.exr"))[0])
+    guides = oidn_guides(frame)
+    high, balanced, fast = (oidn_denoise(frame["color"], *guides, quality=q) for q in ("high", "balanced", "fast"))
+    assert np.array_equal(high, balanced)
+    assert not np.array_equal(high, fast)
+
+
 def test_cycles_scene_in_the_report_and_models_that_cannot_read_it(tmp_path):
     """A Blender Cycles scene rendered for real: the novar model's rows are there, the renders are cached
     (a second run renders nothing), and a model needing variance layers is refused by name."""

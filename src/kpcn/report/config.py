@@ -33,9 +33,12 @@ WARMUP_ROLE = 10_000_000  #: role of the untimed warm-up render (its noise is ne
 #: pause between a scene's renders and its timed denoising. Mitsuba's worker threads keep
 #: spinning briefly after a render; a torch denoiser started at once ran 20x slower (2 cores).
 SETTLE_SECONDS = 0.5
-#: OIDN's multiply-adds per pixel (quality "high", the report's setting), counted from its network's
-#: layer list (docs/measured.md); not measured by the report
-OIDN_MACS_PER_PX = 312e3
+#: OIDN's multiply-adds per pixel as the report calls it (RT filter, HDR colour with noisy albedo and normal,
+#: quality "high"), counted from its network's layer list (docs/measured.md); not measured by the report. Without
+#: cleanAux, "high" runs the same U-Net as "balanced" (3x3 convs 9-32-32 at full resolution, 48 ... 96 below, the
+#: decoder back to 64-32-3 at full resolution: 125.4 k; the outputs are identical, tests/test_report.py); its larger
+#: "high" network (about 312 k) is for prefiltered, clean auxiliary images only
+OIDN_MACS_PER_PX = 125.4e3
 
 
 @dataclass

@@ -99,7 +99,8 @@ def oidn_method(repeats: int = 1) -> Method:
 
     return Method(OIDN, fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), quality high, hdr, albedo + normal",
                   repeats, macs_per_px=OIDN_MACS_PER_PX,
-                  macs_source="approximate: OIDN 'high' counted from its network's layer list (docs/measured.md)")
+                  macs_source="approximate: OIDN's RT U-Net counted from its layer list (with noisy albedo and normal "
+                             "'high' runs the 'balanced' network; docs/measured.md)")
 
 
 class MissingLayersError(ValueError):
