@@ -27,6 +27,7 @@ from kpcn.report import (
     MC,
     METRICS,
     OIDN_MACS_PER_PX,
+    OIDN_PREFILTERED,
     Method,
     ReportConfig,
     equal_time,
@@ -69,7 +70,7 @@ def report(tmp_path_factory, stand_in, mi):
 
 
 def _methods():
-    return ["kpcn"] + (["oidn"] if HAS_OIDN else [])
+    return ["kpcn"] + (["oidn", OIDN_PREFILTERED] if HAS_OIDN else [])
 
 
 def _csv_rows(path):
@@ -497,12 +498,15 @@ def test_methods_table_gives_time_and_multiply_adds(report):
     for m, t in table.items():
         timed = [r["denoise_s"] for r in res.rows + res.converged if r["method"] == m]
         assert t["frames"] == len(timed) and t["denoise_s_mean"] == pytest.approx(float(np.mean(timed)))
-        assert t["macs_per_px"] > 0 and t["macs_source"]
+        assert t["macs_source"]
+        if m != OIDN_PREFILTERED:  # OIDN's larger network and its guides' filters are not counted
+            assert t["macs_per_px"] > 0
     md = res.paths["markdown"].read_text().split("## Methods")[1].split("\n## ")[0]
     assert f"| kpcn | {table['kpcn']['macs_per_px'] / 1e3:.1f} k |" in md
     if HAS_OIDN:
         assert table["oidn"]["macs_per_px"] == OIDN_MACS_PER_PX
         assert f"| oidn | ≈ {OIDN_MACS_PER_PX / 1e3:.1f} k |" in md
+        assert table[OIDN_PREFILTERED]["macs_per_px"] is None and f"| {OIDN_PREFILTERED} | n/a |" in md
 
 
 @pytest.mark.skipif(not HAS_OIDN, reason="pyoidn not installed")
@@ -619,6 +623,27 @@ def test_oidn_high_runs_the_balanced_network_for_noisy_guides(report):
     high, balanced, fast = (oidn_denoise(frame["color"], *guides, quality=q) for q in ("high", "balanced", "fast"))
     assert np.array_equal(high, balanced)
     assert not np.array_equal(high, fast)
+
+
+@pytest.mark.skipif(not HAS_OIDN, reason="pyoidn not installed")
+def test_oidn_prefilter_cleans_the_guides_it_passes_as_clean(report):
+    """``prefilter=True`` denoises the albedo with OIDN's own filter before passing it as clean: on rendered frames
+    that albedo is nearer the reference's than the noisy one, and the colour then differs from the plain call's."""
+    from kpcn.baselines import _oidn_aux, oidn_guides
+    import pyoidn
+
+    cfg, _ = report
+    errors = []
+    for path in sorted(Path(cfg.out).rglob("input_2spp*.exr")):
+        frame = read_exr(path)
+        ref = read_exr(sorted(path.parent.glob("reference*.exr"))[0])
+        albedo = np.ascontiguousarray(np.clip(oidn_guides(frame)[0], 0, 1), dtype=np.float32)
+        clean = _oidn_aux(pyoidn, albedo, pyoidn.OIDN_IMAGE_ALBEDO, "high")
+        target = oidn_guides(ref)[0]
+        errors.append((np.mean((clean - target) ** 2), np.mean((albedo - target) ** 2)))
+        plain, pre = (oidn_denoise(frame["color"], *oidn_guides(frame), prefilter=p) for p in (False, True))
+        assert pre.shape == plain.shape and np.isfinite(pre).all() and not np.array_equal(pre, plain)
+    assert errors and sum(c for c, _ in errors) < sum(n for _, n in errors)
 
 
 def test_cycles_scene_in_the_report_and_models_that_cannot_read_it(tmp_path):

@@ -110,6 +110,7 @@ from .checks import (
 )
 from .cli import main
 from .config import (
+    BASELINES,
     CONVERGED_ROLE,
     CSV_FIELDS,
     DEFAULT_SCENES,
@@ -118,6 +119,7 @@ from .config import (
     METRICS,
     OIDN,
     OIDN_MACS_PER_PX,
+    OIDN_PREFILTERED,
     SETTLE_SECONDS,
     TIMES,
     WARMUP_ROLE,
@@ -125,7 +127,7 @@ from .config import (
     log,
     nearest_spp,
 )
-from .methods import Method, build_methods, model_method, oidn_method, parse_model_spec
+from .methods import Method, build_methods, model_method, oidn_method, oidn_prefiltered_method, parse_model_spec
 from .plots import contact_sheet, plot_error_vs_time
 from .run import ReportResult, build_summary, run_report, write_outputs
 from .tables import equal_time_markdown, markdown_report, write_csv
@@ -133,14 +135,14 @@ from .tables import equal_time_markdown, markdown_report, write_csv
 __all__ = [
     "CONVERGED_FIELDS", "CONVERGED_ROLE", "EXPOSURE_FIELDS", "MIXED_FIELDS",
     "CSV_FIELDS", "DEFAULT_SCENES", "INPUT_ROLE_BASE", "MC", "METRICS", "OIDN",
-    "OIDN_MACS_PER_PX", "SETTLE_SECONDS", "TIMES", "WARMUP_ROLE",
+    "OIDN_MACS_PER_PX", "OIDN_PREFILTERED", "BASELINES", "SETTLE_SECONDS", "TIMES", "WARMUP_ROLE",
     "Method", "ReportConfig", "ReportResult", "SceneRenders",
     "against_oidn", "build_methods", "build_summary", "contact_sheet", "converged_table", "equal_time",
     "equal_time_headline", "equal_time_markdown", "evaluate_converged", "evaluate_exposure",
     "evaluate_mixed", "evaluate_scene", "exposure_table", "fitted_slope",
     "is_ref_limited", "main", "markdown_report", "mc_spp_for_error", "mean_table", "method_table", "mixed_table",
-    "model_method",
-    "nearest_spp", "oidn_method", "parse_model_spec", "plot_error_vs_time", "reference_floor", "refined_spp",
+    "model_method", "nearest_spp", "oidn_method", "oidn_prefiltered_method", "parse_model_spec",
+    "plot_error_vs_time", "reference_floor", "refined_spp",
     "render_scene", "render_time_model", "run_report", "scene_label", "scene_slug", "scene_source", "worse_than_input",
     "worse_with_more_samples", "write_csv", "write_outputs",
 ]

@@ -30,7 +30,7 @@ from ..render import mix_frames
 from ..sample_maps import region_mask
 from .analysis import is_ref_limited, reference_floor
 from .cache import SceneRenders
-from .config import MC, MORE_SAMPLES_TOLERANCE, OIDN
+from .config import BASELINES, MC, MORE_SAMPLES_TOLERANCE, OIDN
 from .methods import Method
 
 #: per-scene fields of the converged-input table (``converged.csv``)
@@ -264,7 +264,7 @@ def worse_with_more_samples(rows: Sequence[dict], tolerance: float = MORE_SAMPLE
 
 
 def against_oidn(means: Sequence[dict], rows: Sequence[dict] = ()) -> list[dict]:
-    """Per model (not MC, not OIDN) and spp: does its mean relMSE <= OIDN's, mean PSNR >= and mean SSIM >=?
+    """Per model (not MC, not an OIDN baseline) and spp: does its mean relMSE <= OIDN's, mean PSNR >= and mean SSIM >=?
 
     ``beats_oidn`` is True when all three hold. With ``rows``, also
     ``scenes_won_relmse``: on how many scenes its relMSE <= OIDN's. Empty without OIDN rows.
@@ -274,7 +274,7 @@ def against_oidn(means: Sequence[dict], rows: Sequence[dict] = ()) -> list[dict]
     out = []
     for r in means:
         o = oidn.get(r["spp"])
-        if r["method"] in (MC, OIDN) or o is None:
+        if r["method"] == MC or r["method"] in BASELINES or o is None:
             continue
         ok = {"relmse_ok": r["relmse"] <= o["relmse"], "psnr_ok": r["psnr"] >= o["psnr"], "ssim_ok": r["ssim"] >= o["ssim"]}
         scenes = sorted({s for s, p, m in per_scene if p == r["spp"] and m == r["method"] and (s, p, OIDN) in per_scene})

@@ -55,6 +55,8 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="allow .pt model files that only full unpickling can load (runs their code: trusted files only)")
     p.add_argument("--no-oidn", action="store_true", help="leave OIDN out even if pyoidn is installed")
+    p.add_argument("--no-oidn-prefiltered", action="store_true",
+                   help="leave out OIDN with its albedo and normal prefiltered (oidn_prefiltered; OIDN itself stays)")
     p.add_argument("--out", help="results root (default: results/report)")
     p.add_argument("--name", help="report name: files go to <out>/<name>/ (default: default, or quick)")
     p.add_argument("--seed", type=int, help="base render seed (default: 0)")
@@ -77,7 +79,8 @@ def _parse_args(argv=None) -> tuple[ReportConfig, argparse.Namespace]:
         "equal_time_spp": a.equal_time_spp, "contact_spp": a.contact_spp,
         "exposure_factors": a.exposure_factors, "exposure_spp": a.exposure_spp,
         "mixed_spp": a.mixed_spp,
-        "oidn": False if a.no_oidn else None, "rerender": True if a.rerender else None,
+        "oidn": False if a.no_oidn else None,
+        "oidn_prefiltered": False if a.no_oidn_prefiltered else None, "rerender": True if a.rerender else None,
         "trust_checkpoint": True if a.trust_checkpoint else None,
     }
     cfg = config_from_args(ReportConfig, a, flags, defaults=ReportConfig.QUICK if a.quick else None)

@@ -17,7 +17,11 @@ TIMES = ("render_s", "denoise_s", "total_s")
 #: ``ref_limited``: the row's relMSE is below ``floor_factor`` times it (not resolved by this reference)
 CSV_FIELDS = ("scene", "spp", "method", *METRICS, *TIMES, "width", "height", "ref_spp", "ref_floor", "ref_limited")
 MC = "mc"  #: method name of the raw Monte Carlo rows
-OIDN = "oidn"  #: method name of Intel Open Image Denoise
+OIDN = "oidn"  #: method name of Intel Open Image Denoise (the frame's noisy albedo and normal as they are)
+#: method name of OIDN with its guides prefiltered by its own filters (Blender's "Accurate" prefilter): stronger, and
+#: several times slower; shown beside, while "Against OIDN" compares with :data:`OIDN`
+OIDN_PREFILTERED = "oidn_prefiltered"
+BASELINES = (OIDN, OIDN_PREFILTERED)  #: the methods that are not kpcn models (nor raw Monte Carlo)
 #: a rise in relMSE (a fraction) that "worse with more samples" lets pass (independent renders differ a little)
 MORE_SAMPLES_TOLERANCE = 0.02
 #: unseen scenes: procedural seeds far from the training data's (all below 70 000), named test scenes, and
@@ -63,6 +67,7 @@ class ReportConfig:
     resolution: tuple[int, int] = (256, 256)
     models: list[str] = field(default_factory=lambda: ["unet_kpcn", "mskpcn", "kpcn", "dpcn"])
     oidn: bool = True  #: include OIDN when pyoidn imports
+    oidn_prefiltered: bool = True  #: and OIDN with prefiltered guides (OIDN_PREFILTERED) beside it
     out: str = "results/report"
     name: str = "default"
     seed: int = 0

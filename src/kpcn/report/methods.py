@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from ..io import Frame
-from .config import OIDN, OIDN_MACS_PER_PX, ReportConfig, log
+from .config import OIDN, OIDN_MACS_PER_PX, OIDN_PREFILTERED, ReportConfig, log
 
 
 @dataclass
@@ -103,6 +103,19 @@ def oidn_method(repeats: int = 1) -> Method:
                              "'high' runs the 'balanced' network; docs/measured.md)")
 
 
+def oidn_prefiltered_method(repeats: int = 1) -> Method:
+    """OIDN with its albedo and normal denoised by its own filters first and passed as clean (``cleanAux``; at quality
+    high its larger network): Blender's "Accurate" prefilter, as a :class:`Method`."""
+    from ..baselines import oidn_denoise, oidn_guides, oidn_version
+
+    def fn(frame: Frame) -> np.ndarray:
+        return oidn_denoise(frame["color"], *oidn_guides(frame), prefilter=True)
+
+    return Method(OIDN_PREFILTERED, fn, f"Intel Open Image Denoise {oidn_version()} (pyoidn), quality high, hdr, "
+                  "albedo + normal prefiltered by its own filters (cleanAux)", repeats,
+                  macs_source="not counted: OIDN's larger network and its albedo and normal filters")
+
+
 class MissingLayersError(ValueError):
     """A method needs layers that a scene's renders lack."""
 
@@ -135,6 +148,8 @@ def build_methods(cfg: ReportConfig) -> tuple[list[Method], list[str]]:
     if cfg.oidn:
         if oidn_available():
             methods.append(oidn_method(cfg.repeats))
+            if cfg.oidn_prefiltered:
+                methods.append(oidn_prefiltered_method(cfg.repeats))
         else:
             notes.append("OIDN was not installed (pip install pyoidn): no OIDN rows.")
     return methods, notes

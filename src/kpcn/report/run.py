@@ -19,7 +19,7 @@ from .cache import render_scene, scene_label
 from .checks import (CONVERGED_FIELDS, EXPOSURE_FIELDS, MIXED_FIELDS, against_oidn, converged_table,
                      evaluate_converged, evaluate_exposure, evaluate_mixed, exposure_table, method_table, mixed_table,
                      worse_than_input, worse_with_more_samples)
-from .config import MC, METRICS, OIDN, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
+from .config import BASELINES, MC, METRICS, SETTLE_SECONDS, TIMES, ReportConfig, log, nearest_spp
 from .methods import Method, build_methods, check_layers
 from .plots import contact_sheet, plot_error_vs_time
 from .tables import markdown_report, write_csv
@@ -184,7 +184,7 @@ def run_report(cfg: ReportConfig | None = None, progress: Callable[[str], None] 
         say(f"evaluated {sr.label}")
 
     means = mean_table(rows)
-    model_names = [m.name for m in methods if m.name != OIDN]
+    model_names = [m.name for m in methods if m.name not in BASELINES]
     eq = (equal_time(rows, renders, model_names[0], eq_spp, cfg.floor_factor, tuple(cfg.slope_range))
           if model_names else [])
     if not model_names:

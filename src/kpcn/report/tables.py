@@ -246,7 +246,8 @@ def markdown_report(rows: Sequence[dict], means: Sequence[dict], eq: Sequence[di
         "",
         "Times: render seconds are the wall time of the sampling (kernels compiled by an untimed warm-up render); "
         f"denoise seconds are the wall time of one denoise call{rep} (model: `kpcn.denoise` on the in-memory frame; "
-        "OIDN: `pyoidn.denoise` with albedo and normal), after one untimed warm-up call per method so that "
+        "OIDN: `pyoidn.denoise` with albedo and normal; oidn_prefiltered: the same after OIDN's own filters denoised "
+        "the albedo and normal, as Blender's Accurate prefilter), after one untimed warm-up call per method so that "
         "first-call set-up is not counted, and after a pause that lets the renderer's threads go idle; "
         "total = render + denoise. "
         f"Rows whose relMSE is below {k} the relMSE the reference's own noise adds are flagged *ref-limited*: "
