@@ -620,3 +620,24 @@ def test_a_frame_whose_spp_varies_is_denoised_region_by_region_and_keeps_its_cou
         dn.denoise(Frame({**mixed.layers, SAMPLE_COUNT: holes}, mixed.meta))
     said = " ".join(str(w.message) for w in caught)
     assert "6 pixel(s) have no samples" in said and "4 pixel(s) have one sample" in said
+
+
+def test_bench_denoise_times_oidn_prefiltered_beside_oidn(capsys, tmp_path):
+    """``--oidn-prefiltered``: OIDN with its guides prefiltered gets its own row, timed on the same rendered frame
+    as OIDN's, in one run."""
+    import json
+
+    from kpcn.baselines import oidn_available
+    from kpcn.bench import SUBCOMMANDS
+
+    if not oidn_available():
+        pytest.skip("pyoidn is not installed")
+    out = tmp_path / "b.json"
+    rc = SUBCOMMANDS["denoise"](["--sizes", "24", "--models", "small_unet", "--oidn-prefiltered", "--threads", "1",
+                                 "--json", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    rows = {r["model"]: r for r in json.loads(out.read_text())["results"]}
+    assert set(rows) == {"small_unet", "oidn", "oidn_prefiltered"}
+    assert all(r["status"] == "ok" and r["median_s"] > 0 for r in rows.values())
+    assert "oidn_prefiltered" in text

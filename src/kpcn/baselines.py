@@ -33,7 +33,7 @@ import numpy as np
 
 from .constants import OIDN_ALBEDO, OIDN_NORMAL
 
-__all__ = ["oidn_available", "oidn_version", "oidn_denoise", "oidn_guides"]
+__all__ = ["oidn_available", "oidn_version", "oidn_denoise", "oidn_guides", "oidn_prefilter_threads"]
 
 
 def oidn_guides(frame) -> tuple[np.ndarray, np.ndarray]:
@@ -133,22 +133,42 @@ def oidn_denoise(
 _AUX_DEVICE = []  #: the CPU device the auxiliary filters run on, made on first use
 
 
+def _aux_device(pyoidn, threads: int | None = None):
+    """The CPU device of the guides' filters (``prefilter=True``), made on first use with ``threads`` (OIDN's
+    ``numThreads``; None: OIDN's default, every core)."""
+    if not _AUX_DEVICE:
+        dev = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+        if threads:
+            dev.set_int("numThreads", int(threads))
+        dev.commit()
+        _AUX_DEVICE.append(dev)
+    return _AUX_DEVICE[0]
+
+
+def oidn_prefilter_threads(threads: int) -> bool:
+    """Give the guides' filters of ``oidn_denoise(..., prefilter=True)`` ``threads`` threads; only before their
+    first use (returns whether it took: False once their device exists, or without pyoidn)."""
+    if _AUX_DEVICE or not oidn_available():
+        return False
+    import pyoidn
+
+    _aux_device(pyoidn, threads)
+    return True
+
+
 def _oidn_aux(pyoidn, image: np.ndarray, slot: str, quality: str) -> np.ndarray:
     """``image`` (contiguous float32 ``(H, W, 3)``) denoised by OIDN's RT filter given only that auxiliary image
     (``slot``: albedo or normal), as OIDN prefilters its guides."""
-    if not _AUX_DEVICE:
-        dev = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
-        dev.commit()
-        _AUX_DEVICE.append(dev)
+    dev = _aux_device(pyoidn)
     out = np.empty_like(image)
-    f = pyoidn.Filter(_AUX_DEVICE[0], pyoidn.OIDN_FILTER_TYPE_RT)
+    f = pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT)
     try:
         f.set_image(slot, image, pyoidn.OIDN_FORMAT_FLOAT3)
         f.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, pyoidn.OIDN_FORMAT_FLOAT3)
         f.set_quality(getattr(pyoidn, f"OIDN_QUALITY_{quality.upper()}") if isinstance(quality, str) else quality)
         f.commit()
         f.execute()
-        err = _AUX_DEVICE[0].get_error()
+        err = dev.get_error()
     finally:
         f.release()
     if err:

@@ -65,20 +65,29 @@ def _denoise_measure(impl: str, path: str, model_name: str, model_kw: dict, tile
     frame = read_exr(path)
     h, w = frame.shape
     extra: dict = {}
-    if impl == "oidn":
+    if impl in ("oidn", "oidn_prefiltered"):
         import pyoidn
+
+        from kpcn.baselines import oidn_denoise, oidn_prefilter_threads
 
         if threads:
             extra["oidn_threads"] = _oidn_set_threads(threads)
+            if impl == "oidn_prefiltered":
+                oidn_prefilter_threads(threads)
         color = np.ascontiguousarray(np.maximum(frame["color"], 0.0))
         albedo = np.ascontiguousarray(np.clip(frame["albedo"], 0.0, 1.0))  # OIDN wants albedo in [0, 1]
         normal = np.ascontiguousarray(frame["normal"])
 
+        def call(c, a, n):  # OIDN as the report calls it; prefiltered: its guides denoised by its own filters first
+            if impl == "oidn":
+                return pyoidn.denoise(c, a, n, hdr=True, quality="high")
+            return oidn_denoise(c, a, n, prefilter=True)
+
         def run():
-            return pyoidn.denoise(color, albedo, normal, hdr=True, quality="high")
+            return call(color, albedo, normal)
 
         s = (slice(0, min(h, 64)), slice(0, min(w, 64)))
-        pyoidn.denoise(color[s].copy(), albedo[s].copy(), normal[s].copy(), hdr=True, quality="high")
+        call(color[s].copy(), albedo[s].copy(), normal[s].copy())
     else:
         from kpcn.inference import denoise_result
 
@@ -194,6 +203,9 @@ class DenoiseBenchConfig:
                 "(e.g. kpcn:layers=5,width=32,conv_size=5,kernel_size=11; random-init weights), or shipped "
                 "weights by name (unet_kpcn:wide); --skip: the first"})
     oidn: bool = field(default=True, metadata={"help": "leave out Intel OIDN"})
+    oidn_prefiltered: bool = field(default=False, metadata={
+        "help": "also time OIDN with its albedo and normal prefiltered by its own filters (Blender's Accurate mode, "
+                "the report's oidn_prefiltered)"})
     rows: bool = field(default=True, metadata={
         "help": "run whole frames at once, not a band of rows at a time (models with row streams; the A/B baseline)"})
     precisions: list[str] = field(default_factory=lambda: ["auto"], metadata={
@@ -290,7 +302,8 @@ def bench_denoise(argv: list[str]) -> int:
                 secs = _render_bench_frame(args.scene, (w, h), args.spp, args.seed, path)
                 print(f"  rendered in {secs:.1f} s", file=sys.stderr, flush=True)
             jobs = [("kpcn", label, name, p, k) for label, name, p, k in labels] + \
-                ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto", "native")])
+                ([] if args.no_oidn else [("oidn", "oidn", "oidn", "auto", "native")]) + \
+                ([("oidn_prefiltered",) * 3 + ("auto", "native")] if args.oidn_prefiltered else [])
             rounds: dict[str, list[dict]] = {name: [] for _, name, _, _, _ in jobs}
             for _ in range(args.rounds):  # every configuration once a round, in the same order
                 for impl, name, model, precision, kernels in jobs:
@@ -320,7 +333,7 @@ def bench_denoise(argv: list[str]) -> int:
     print(f"load average (1, 5, 15 min) at the end: {_loadavg()}")
     for status in sorted({r["native"] for r in ok if "native" in r}):
         print(f"native kernels: {status}")
-    mw = max([8] + [len(n) for n, _, _, _ in labels])
+    mw = max([8] + [len(n) for n, _, _, _ in labels] + [len(r["model"]) for r in results])
     header = f"{'size':>10}  {'model':<{mw}}  {'time s':>9}  {'cpu s':>8}  {'peak MB':>8}  {'kMAC/px':>8}  notes"
     print(header)
     print("-" * len(header))
