@@ -24,8 +24,8 @@ this is the network ``"balanced"`` runs: 125 k multiply-adds per pixel). With
 ``prefilter=True`` they are first denoised by OIDN's own albedo and normal
 filters and passed with ``clean_aux=True``, which at ``"high"`` runs OIDN's
 larger network: Blender's "Accurate" prefilter. On the report's scenes that is
-0.3-0.5 dB better at 4-64 spp and 7.5x the time (docs/measured.md, fiftieth
-session).
+0.3-0.5 dB better at 4-64 spp and takes 6-8x the time (docs/measured.md,
+fiftieth session).
 """
 from __future__ import annotations
 

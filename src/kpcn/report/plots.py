@@ -13,7 +13,8 @@ from .config import MC
 
 
 def _method_colors(methods: Sequence[str]) -> dict[str, str]:
-    fixed = {MC: "black", "oidn": "tab:green", "oidn_prefiltered": "tab:olive", "kpcn": "tab:blue", "dpcn": "tab:orange"}
+    fixed = {MC: "black", "oidn": "tab:green", "oidn_prefiltered": "tab:olive", "kpcn": "tab:blue",
+             "dpcn": "tab:orange"}
     spare = iter(["tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:cyan", "tab:gray"])
     return {m: fixed.get(m) or next(spare, "tab:gray") for m in methods}
 
