@@ -92,24 +92,3 @@ def test_coarse_term_weighs_lost_energy_not_zero_mean_grain():
     assert float(create_loss("log_msssim", {"relmse_weight": 10.0})(x, y)) == pytest.approx(want, rel=1e-5)
     assert float(create_loss("log_msssim", {"relmse_weight": 10.0})(y, y)) == pytest.approx(
         float(create_loss("log_msssim")(y, y)), abs=1e-6)
-
-
-def test_report_ssim_is_the_reports_ssim_and_weighs_in_log_msssim():
-    """``report_ssim`` equals scikit-image's SSIM as kpcn.metrics.ssim calls it (float64, colour images), and
-    ``ssim1_weight`` adds ``w · (1 - report_ssim)`` of the tone-mapped colours to ``log_msssim``."""
-    from skimage.metrics import structural_similarity
-
-    from kpcn.losses import report_ssim
-
-    g = torch.Generator().manual_seed(3)
-    x = torch.rand(1, 3, 40, 36, generator=g, dtype=torch.float64)
-    y = (x + 0.15 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
-    want = structural_similarity(y[0].permute(1, 2, 0).numpy(), x[0].permute(1, 2, 0).numpy(), data_range=1.0,
-                                 channel_axis=-1, win_size=7)
-    assert float(report_ssim(x, y)) == pytest.approx(want, rel=1e-9)
-    assert float(report_ssim(x, x)) == pytest.approx(1.0, abs=1e-12)
-    hx, hy = torch.rand(2, 3, 64, 64, generator=g) * 4, torch.rand(2, 3, 64, 64, generator=g) * 4
-    plain = float(create_loss("log_msssim")(hx, hy))
-    tone = lambda t: (t / (1 + t) + 1e-4) ** (1 / 2.2)  # noqa: E731 - log_msssim's tone map
-    weighted = float(create_loss("log_msssim", {"ssim1_weight": 2.0})(hx, hy))
-    assert weighted == pytest.approx(plain + 2.0 * (1 - float(report_ssim(tone(hx), tone(hy)))), rel=1e-5)

@@ -158,24 +158,6 @@ def ms_ssim(x: torch.Tensor, y: torch.Tensor, scales: int = 3, weights=None) -> 
     return value
 
 
-def report_ssim(x: torch.Tensor, y: torch.Tensor, win: int = 7) -> torch.Tensor:
-    """The SSIM the report measures (:func:`kpcn.metrics.ssim`: scikit-image's ``structural_similarity`` with its
-    defaults, data range 1) of ``(B, C, H, W)`` images in [0, 1]: a ``win × win`` uniform window, the sample
-    covariance (``N / (N - 1)``), the mean over the valid windows and the channels. One scale, the finest, which
-    :func:`ms_ssim` weighs by 7 % only."""
-    n = win * win
-    cov = n / (n - 1.0)
-
-    def mean(t):
-        return F.avg_pool2d(t, win, stride=1)
-
-    mx, my = mean(x), mean(y)
-    vx, vy, vxy = cov * (mean(x * x) - mx * mx), cov * (mean(y * y) - my * my), cov * (mean(x * y) - mx * my)
-    c1, c2 = 0.01**2, 0.03**2
-    s = (2 * mx * my + c1) * (2 * vxy + c2) / ((mx * mx + my * my + c1) * (vx + vy + c2))
-    return s.mean()
-
-
 def _ms_scales(x: torch.Tensor) -> int:
     """As many of 3 MS-SSIM scales as the patch holds."""
     return 1 + max(0, min(2, int(math.floor(math.log2(max(min(x.shape[-2:]), 7) / 7)))))
@@ -196,13 +178,11 @@ def coarse_log_l1(x: torch.Tensor, y: torch.Tensor, pools=(4, 16)) -> torch.Tens
 
 @register_loss("log_msssim")
 def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coarse_weight: float = 0.0,
-               coarse_pools=(4, 16), tone_l2_weight: float = 0.0, relmse_weight: float = 0.0,
-               ssim1_weight: float = 0.0) -> torch.Tensor:
+               coarse_pools=(4, 16), tone_l2_weight: float = 0.0, relmse_weight: float = 0.0) -> torch.Tensor:
     """The log loss + ``ssim_weight`` · (1 − MS-SSIM of the tone-mapped colours), ``+ coarse_weight`` ·
     :func:`coarse_log_l1`, ``+ tone_l2_weight`` · the mean squared error of the tone-mapped colours (what the
     report's PSNR measures), ``+ relmse_weight`` · :func:`relmse` (what the report's relMSE measures: dark pixels
-    weigh most), ``+ ssim1_weight`` · (1 − :func:`report_ssim` of the tone-mapped colours: the report's SSIM, one
-    scale). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
+    weigh most). The log loss is an L1: its optimum is a median, below the mean wherever what a noisy
     input can stand for is skewed (a glossy highlight a few samples missed); a squared error's optimum is the mean."""
     def tone(t):  # kpcn.metrics.tonemap; the offset keeps the gamma's slope finite at 0
         t = t.clamp_min(0)
@@ -216,8 +196,6 @@ def log_msssim(x: torch.Tensor, y: torch.Tensor, ssim_weight: float = 1.0, coars
         loss = loss + tone_l2_weight * (tx - ty).square().mean()
     if relmse_weight:
         loss = loss + relmse_weight * relmse(x, y)
-    if ssim1_weight:
-        loss = loss + ssim1_weight * (1 - report_ssim(tx, ty))
     return loss
 
 
